@@ -1,0 +1,219 @@
+"""The ``warp-cloth`` command line: ``run``, ``bench`` and ``info``.
+
+    warp-cloth run hanging --out hanging.usd [--frames N --fps F --substeps S --res N
+                           --solver {explicit,implicit,pbd,pd} --stiffness K --density RHO ...]
+    warp-cloth bench NAME [options of that benchmark]
+    warp-cloth info
+
+Bad options and values give a usage error (exit status 2), never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import sys
+
+SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh"]
+SOLVER_NAMES = ["explicit", "implicit", "pbd", "pd"]
+BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability"]
+
+# option -> (solver option name, solvers that accept it)
+SOLVER_OPTIONS = {
+    "linear": ("linear", ("implicit", "pd")),
+    "newton_iterations": ("newton_iterations", ("implicit",)),
+    "iterations": ("iterations", ("pbd", "pd")),
+    "gauss_seidel": ("gauss_seidel", ("pbd",)),
+    "compliance": ("compliance", ("pbd",)),
+}
+
+
+def _positive_int(s):
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {s!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {s!r}")
+    return v
+
+
+def _positive_float(s):
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {s!r}") from None
+    if not (v > 0 and v != float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {s!r}")
+    return v
+
+
+def _nonneg_float(s):
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {s!r}") from None
+    if not (v >= 0 and v != float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {s!r}")
+    return v
+
+
+def _range_pair(s):
+    parts = s.split(",")
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"expected MIN,MAX, got {s!r}")
+    try:
+        lo, hi = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected two numbers MIN,MAX, got {s!r}") from None
+    if not (0 <= lo <= hi):
+        raise argparse.ArgumentTypeError(f"expected 0 <= MIN <= MAX, got {s!r}")
+    return lo, hi
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="warp-cloth", description="Cloth simulation on NVIDIA Warp.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("run", help="run a scene and write a USD file")
+    r.add_argument("scene", choices=SCENE_NAMES)
+    r.add_argument("--out", default=None, help="output .usd (default: SCENE.usd)")
+    r.add_argument("--frames", type=_positive_int, default=None, help="frames written, incl. frame 0")
+    r.add_argument("--fps", type=_positive_float, default=60.0)
+    r.add_argument("--substeps", type=_positive_int, default=None,
+                   help="solver steps per frame (default: the solver's choice; explicit derives "
+                        "it from its stability bound)")
+    r.add_argument("--res", type=_positive_int, default=None, help="cells along each side")
+    r.add_argument("--solver", choices=SOLVER_NAMES, default="explicit")
+    r.add_argument("--stiffness", type=_nonneg_float, default=None, help="stretch springs, N/m")
+    r.add_argument("--density", type=_positive_float, default=None, help="kg/m^2")
+    r.add_argument("--bending", choices=["none", "springs", "dihedral", "quadratic"], default=None)
+    r.add_argument("--bend-stiffness", type=_nonneg_float, default=None,
+                   help="N/m (springs) or N m (dihedral, quadratic)")
+    r.add_argument("--damping", type=_nonneg_float, default=None, help="velocity damping, 1/s")
+    r.add_argument("--linear", choices=["jacobi", "chebyshev", "cg"], default=None,
+                   help="inner linear solver (implicit, pd)")
+    r.add_argument("--newton-iterations", type=_positive_int, default=None, help="implicit")
+    r.add_argument("--iterations", type=_positive_int, default=None, help="pbd, pd")
+    r.add_argument("--gauss-seidel", action="store_true", default=None, help="pbd: coloured GS")
+    r.add_argument("--compliance", type=_nonneg_float, default=None, help="pbd: XPBD compliance")
+    r.add_argument("--strain-limit", type=_range_pair, default=None, metavar="SMIN,SMAX")
+    r.add_argument("--area-limit", type=_range_pair, default=None, metavar="AMIN,AMAX")
+    r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0")
+    r.add_argument("--quiet", action="store_true", help="no progress bar or Warp messages")
+    r.add_argument("--json", action="store_true", help="print the run statistics as JSON")
+
+    b = sub.add_parser("bench", help="benchmarks: warp-cloth bench NAME --help",
+                       add_help=False)
+    b.add_argument("name", choices=BENCH_NAMES)
+    b.add_argument("args", nargs=argparse.REMAINDER)
+
+    sub.add_parser("info", help="versions and devices")
+    return p
+
+
+def _corrections(args):
+    out = []
+    if args.strain_limit is not None or args.area_limit is not None:
+        from . import limits
+
+        if args.strain_limit is not None:
+            lo, hi = args.strain_limit
+            out.append(lambda model: limits.StrainLimit(model, lo, hi))
+        if args.area_limit is not None:
+            lo, hi = args.area_limit
+            out.append(lambda model: limits.AreaLimit(model, lo, hi))
+    return out
+
+
+def cmd_run(args, parser) -> int:
+    import warp as wp
+
+    if args.quiet:
+        wp.config.quiet = True
+    from .errors import SimulationDiverged
+    from .scenes import build_scene
+
+    solver_options = {}
+    for opt, (name, solvers) in SOLVER_OPTIONS.items():
+        val = getattr(args, opt)
+        if val is None:
+            continue
+        if args.solver not in solvers:
+            parser.error(f"--{opt.replace('_', '-')} applies to --solver {'/'.join(solvers)}, "
+                         f"not {args.solver}")
+        solver_options[name] = val
+    kw = dict(solver=args.solver, solver_options=solver_options, fps=args.fps,
+              substeps=args.substeps, corrections=_corrections(args))
+    for opt, name in (("frames", "frames"), ("res", "res"), ("stiffness", "stiffness"),
+                      ("density", "density"), ("bending", "bending"),
+                      ("bend_stiffness", "bend_stiffness"), ("damping", "damping"),
+                      ("device", "device")):
+        val = getattr(args, opt)
+        if val is not None:
+            kw[name] = val
+    out = args.out or f"{args.scene}.usd"
+    try:
+        scene = build_scene(args.scene, **kw)
+    except (ValueError, TypeError) as e:
+        parser.error(str(e))
+    try:
+        stats = scene.run(out, quiet=args.quiet)
+    except SimulationDiverged as e:
+        print(f"warp-cloth: {e}; {out} holds the frames before it", file=sys.stderr)
+        return 3
+    except KeyboardInterrupt:
+        print(f"\nwarp-cloth: interrupted; {out} holds the frames done so far", file=sys.stderr)
+        return 130
+    if args.json:
+        print(json.dumps(stats.as_dict(), indent=2, default=str))
+    else:
+        print(stats.summary())
+    return 0
+
+
+def cmd_bench(args, parser) -> int:
+    try:
+        mod = importlib.import_module(f"warp_cloth.bench.{args.name}")
+    except ImportError:
+        parser.error(f"benchmark {args.name!r} is not available in this installation")
+    return int(mod.main(args.args) or 0)
+
+
+def cmd_info() -> int:
+    import warp as wp
+
+    from . import __version__
+    from .solvers import available
+
+    wp.config.quiet = True
+    wp.init()
+    print(f"warp_cloth {__version__}")
+    print(f"warp {wp.__version__}")
+    try:
+        from pxr import Usd
+
+        print(f"usd {'.'.join(str(v) for v in Usd.GetVersion())}")
+    except ImportError:
+        print("usd: not installed")
+    print(f"python {sys.version.split()[0]}")
+    print("devices: " + ", ".join(f"{d.alias} ({d.name})" for d in wp.get_devices()))
+    print("solvers: " + ", ".join(available()))
+    print(f"kernel cache: {wp.config.kernel_cache_dir}")
+    return 0
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == "run":
+        return cmd_run(args, parser)
+    if args.command == "bench":
+        return cmd_bench(args, parser)
+    return cmd_info()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

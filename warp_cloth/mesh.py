@@ -1,0 +1,331 @@
+"""Triangle meshes and their topology.
+
+`TriMesh` holds vertices (N x 3, metres) and triangles (M x 3 vertex indices) on the host and
+derives, once, everything the solvers need from the connectivity:
+
+- ``edges`` (E x 2, ``i < j``), ``edge_tris`` (E x 2, the one or two triangles on each edge, -1
+  where there is none) and ``boundary_edges``;
+- ``bend_quads`` (B x 4): for every interior edge ``(a, b)`` shared by triangles ``(a, b, c)`` and
+  ``(b, a, d)`` the four vertices ``(a, b, c, d)``; ``(c, d)`` is the notes' *bending pair*.
+
+The edges are built exactly as in the course notes (``reference/physics.md`` section 2.1): every
+triangle emits the triples ``(min(i, j), max(i, j), tri)``, the triples are sorted, and equal
+neighbours are interior edges.
+
+Generators (`TriMesh.grid`) and loaders (`TriMesh.from_obj`, `TriMesh.from_usd`) build meshes;
+`TriMesh.validate` (run by the constructor) rejects bad input with a `ValueError` that names the
+offending vertex, triangle or edge.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["TriMesh", "edge_triples"]
+
+
+def edge_triples(triangles: np.ndarray) -> np.ndarray:
+    """The notes' sorted edge triples ``(min(i, j), max(i, j), tri)``, one per triangle side.
+
+    Returned sorted lexicographically (by first vertex, then second, then triangle), which puts the
+    two triples of an interior edge next to each other.
+    """
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    m = len(tris)
+    a = tris[:, [0, 1, 2]].reshape(-1)
+    b = tris[:, [1, 2, 0]].reshape(-1)
+    t = np.repeat(np.arange(m, dtype=np.int64), 3)
+    trip = np.stack([np.minimum(a, b), np.maximum(a, b), t], axis=1)
+    order = np.lexsort((trip[:, 2], trip[:, 1], trip[:, 0]))
+    return trip[order]
+
+
+@dataclass
+class TriMesh:
+    """A triangle mesh with validated connectivity and derived topology.
+
+    Args:
+        vertices: (N, 3) positions in metres.
+        triangles: (M, 3) vertex indices, counter-clockwise seen from the front side.
+        grid_shape: ``(nx, ny)`` when the mesh is a structured grid made by `TriMesh.grid`
+            (vertex ``j * (nx + 1) + i``); enables the structured shear/bending springs.
+        name: a label used in error messages and as the USD prim name.
+
+    Raises:
+        ValueError: on non-finite coordinates, out-of-range or negative indices, a repeated vertex
+            in a triangle, a zero-area or duplicate triangle, or a non-manifold edge (more than two
+            triangles); the message names the index.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    grid_shape: tuple[int, int] | None = None
+    name: str = "cloth"
+    edges: np.ndarray = field(init=False, repr=False)
+    edge_tris: np.ndarray = field(init=False, repr=False)
+    bend_quads: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self):
+        v = np.asarray(self.vertices, dtype=np.float64)
+        t = np.asarray(self.triangles)
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise ValueError(f"{self.name}: vertices must have shape (N, 3), got {v.shape}")
+        if t.ndim != 2 or t.shape[1] != 3:
+            raise ValueError(f"{self.name}: triangles must have shape (M, 3), got {t.shape}")
+        if len(t) == 0:
+            raise ValueError(f"{self.name}: mesh has no triangles")
+        if not np.issubdtype(t.dtype, np.integer):
+            if not np.all(np.isfinite(t)) or np.any(t != np.round(t)):
+                raise ValueError(f"{self.name}: triangle indices must be integers")
+        self.vertices = v
+        self.triangles = t.astype(np.int64)
+        self.validate()
+        self._build_topology()
+
+    # ------------------------------------------------------------------ validation
+    def validate(self) -> None:
+        """Check the mesh; raise `ValueError` naming the first offending vertex/triangle/edge."""
+        v, t, n = self.vertices, self.triangles, len(self.vertices)
+        bad = np.argwhere(~np.isfinite(v))
+        if len(bad):
+            i = int(bad[0, 0])
+            raise ValueError(f"{self.name}: vertex {i} has a non-finite coordinate {v[i].tolist()}")
+        bad = np.argwhere((t < 0) | (t >= n))
+        if len(bad):
+            k, c = (int(x) for x in bad[0])
+            raise ValueError(
+                f"{self.name}: triangle {k} has vertex index {int(t[k, c])} out of range "
+                f"[0, {n - 1}] (triangle {t[k].tolist()})"
+            )
+        rep = (t[:, 0] == t[:, 1]) | (t[:, 1] == t[:, 2]) | (t[:, 0] == t[:, 2])
+        if rep.any():
+            k = int(np.argmax(rep))
+            raise ValueError(f"{self.name}: triangle {k} repeats a vertex {t[k].tolist()}")
+        area = self.triangle_areas()
+        scale = max(float(np.ptp(v, axis=0).max()), 1e-30)
+        tiny = area <= 1e-12 * scale * scale
+        if tiny.any():
+            k = int(np.argmax(tiny))
+            raise ValueError(
+                f"{self.name}: triangle {k} {t[k].tolist()} has zero area ({area[k]:.3g} m^2)"
+            )
+        key = np.sort(t, axis=1)
+        _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+        if (counts > 1).any():
+            dup_key = key[first[np.argmax(counts > 1)]]
+            same = np.flatnonzero((key == dup_key).all(axis=1))
+            raise ValueError(
+                f"{self.name}: triangles {same.tolist()} are duplicates (vertices {dup_key.tolist()})"
+            )
+
+    # ------------------------------------------------------------------ topology
+    def _build_topology(self) -> None:
+        trip = edge_triples(self.triangles)
+        same_as_prev = np.zeros(len(trip), dtype=bool)
+        same_as_prev[1:] = (trip[1:, 0] == trip[:-1, 0]) & (trip[1:, 1] == trip[:-1, 1])
+        starts = np.flatnonzero(~same_as_prev)
+        counts = np.diff(np.append(starts, len(trip)))
+        if (counts > 2).any():
+            e = int(np.argmax(counts > 2))
+            s = starts[e]
+            tris = trip[s : s + counts[e], 2].tolist()
+            raise ValueError(
+                f"{self.name}: non-manifold edge ({trip[s, 0]}, {trip[s, 1]}) is shared by "
+                f"{counts[e]} triangles {tris}; a cloth edge may have at most two"
+            )
+        self.edges = trip[starts, :2].copy()
+        self.edge_tris = np.full((len(starts), 2), -1, dtype=np.int64)
+        self.edge_tris[:, 0] = trip[starts, 2]
+        interior = counts == 2
+        self.edge_tris[interior, 1] = trip[starts[interior] + 1, 2]
+
+        # bending quads (a, b, c, d): shared edge (a, b) in the winding of the first triangle
+        ie = np.flatnonzero(interior)
+        quads = np.empty((len(ie), 4), dtype=np.int64)
+        tri = self.triangles
+        for q, e in enumerate(ie):
+            i, j = self.edges[e]
+            t0, t1 = tri[self.edge_tris[e, 0]], tri[self.edge_tris[e, 1]]
+            # orient (a, b) as it appears in t0's winding
+            k = int(np.flatnonzero(t0 == i)[0])
+            a, b = (i, j) if t0[(k + 1) % 3] == j else (j, i)
+            c = int(t0[(t0 != i) & (t0 != j)][0])
+            d = int(t1[(t1 != i) & (t1 != j)][0])
+            quads[q] = (a, b, c, d)
+        self.bend_quads = quads
+
+    @property
+    def num_vertices(self) -> int:
+        return len(self.vertices)
+
+    @property
+    def num_triangles(self) -> int:
+        return len(self.triangles)
+
+    @property
+    def boundary_edges(self) -> np.ndarray:
+        """(B, 2) edges that belong to a single triangle."""
+        return self.edges[self.edge_tris[:, 1] < 0]
+
+    @property
+    def interior_edges(self) -> np.ndarray:
+        return self.edges[self.edge_tris[:, 1] >= 0]
+
+    @property
+    def bending_pairs(self) -> np.ndarray:
+        """(B, 2) the two vertices opposite each interior edge (the notes' bending springs)."""
+        return self.bend_quads[:, 2:4].copy()
+
+    def triangle_areas(self, positions: np.ndarray | None = None) -> np.ndarray:
+        x = self.vertices if positions is None else np.asarray(positions, dtype=np.float64)
+        t = self.triangles
+        return 0.5 * np.linalg.norm(
+            np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]]), axis=1
+        )
+
+    def vertex_areas(self) -> np.ndarray:
+        """Lumped area per vertex: a third of each adjacent triangle's area."""
+        a = np.zeros(self.num_vertices)
+        np.add.at(a, self.triangles.reshape(-1), np.repeat(self.triangle_areas() / 3.0, 3))
+        return a
+
+    def extent(self) -> float:
+        """Largest side of the axis-aligned bounding box (m); the 'cloth size' of error metrics."""
+        return float(np.ptp(self.vertices, axis=0).max())
+
+    # ------------------------------------------------------------------ generators
+    @classmethod
+    def grid(
+        cls,
+        nx: int,
+        ny: int,
+        size: tuple[float, float] | float = 1.0,
+        plane: str = "xz",
+        origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        diagonals: str = "alternating",
+        name: str = "cloth",
+    ) -> "TriMesh":
+        """A rectangular sheet of ``nx`` x ``ny`` cells, two triangles per cell.
+
+        Vertex ``(i, j)`` (``0 <= i <= nx``, ``0 <= j <= ny``) has index ``j * (nx + 1) + i`` and
+        position ``origin + i * dx * u + j * dy * w``, where ``(u, w)`` are the unit axes of
+        ``plane`` (``"xy"``, ``"xz"`` or ``"yz"``) and ``(dx, dy) = size / (nx, ny)``.
+
+        ``diagonals="alternating"`` flips the diagonal cell by cell (no directional bias);
+        ``"fixed"`` uses the same diagonal everywhere. Triangles are counter-clockwise about
+        ``u x w``.
+        """
+        if int(nx) != nx or int(ny) != ny or nx < 1 or ny < 1:
+            raise ValueError(f"grid: nx and ny must be positive integers, got ({nx}, {ny})")
+        nx, ny = int(nx), int(ny)
+        sx, sy = (size, size) if np.isscalar(size) else size
+        if not (sx > 0 and sy > 0 and math.isfinite(sx) and math.isfinite(sy)):
+            raise ValueError(f"grid: size must be positive and finite, got {size}")
+        axes = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
+        if plane not in axes:
+            raise ValueError(f"grid: plane must be one of {sorted(axes)}, got {plane!r}")
+        if diagonals not in ("alternating", "fixed"):
+            raise ValueError(f"grid: diagonals must be 'alternating' or 'fixed', got {diagonals!r}")
+        au, aw = axes[plane]
+        i, j = np.meshgrid(np.arange(nx + 1), np.arange(ny + 1))
+        verts = np.zeros(((nx + 1) * (ny + 1), 3))
+        verts[:, au] = i.reshape(-1) * (sx / nx)
+        verts[:, aw] = j.reshape(-1) * (sy / ny)
+        verts += np.asarray(origin, dtype=np.float64)
+        # counter-clockwise about u x w (for plane "xz" that is -y)
+        tris = []
+        for cj in range(ny):
+            for ci in range(nx):
+                v00 = cj * (nx + 1) + ci
+                v10, v01, v11 = v00 + 1, v00 + nx + 1, v00 + nx + 2
+                if diagonals == "fixed" or (ci + cj) % 2 == 0:
+                    tris += [(v00, v10, v11), (v00, v11, v01)]
+                else:
+                    tris += [(v00, v10, v01), (v10, v11, v01)]
+        return cls(verts, np.asarray(tris, dtype=np.int64), grid_shape=(nx, ny), name=name)
+
+    # ------------------------------------------------------------------ loaders
+    @classmethod
+    def from_obj(cls, path: str | os.PathLike, name: str | None = None) -> "TriMesh":
+        """Load a Wavefront OBJ file: ``v`` lines and ``f`` lines (``i``, ``i/t``, ``i//n``,
+        ``i/t/n``, negative = relative indices). Quads and polygons are fan-triangulated; other
+        statements are ignored."""
+        verts, tris = [], []
+        name = name or os.path.splitext(os.path.basename(str(path)))[0]
+        with open(path, "r", encoding="utf-8") as fh:
+            for lineno, line in enumerate(fh, 1):
+                parts = line.split("#", 1)[0].split()
+                if not parts:
+                    continue
+                if parts[0] == "v":
+                    try:
+                        verts.append([float(c) for c in parts[1:4]])
+                    except ValueError:
+                        raise ValueError(f"{path}:{lineno}: bad vertex line {line.strip()!r}") from None
+                    if len(verts[-1]) != 3:
+                        raise ValueError(f"{path}:{lineno}: vertex needs 3 coordinates")
+                elif parts[0] == "f":
+                    idx = []
+                    for tok in parts[1:]:
+                        try:
+                            k = int(tok.split("/")[0])
+                        except ValueError:
+                            raise ValueError(f"{path}:{lineno}: bad face index {tok!r}") from None
+                        if k == 0:
+                            raise ValueError(f"{path}:{lineno}: OBJ indices start at 1, got 0")
+                        idx.append(k - 1 if k > 0 else len(verts) + k)
+                    if len(idx) < 3:
+                        raise ValueError(f"{path}:{lineno}: face needs at least 3 vertices")
+                    for q in range(1, len(idx) - 1):
+                        tris.append((idx[0], idx[q], idx[q + 1]))
+        if not verts:
+            raise ValueError(f"{path}: no vertices found")
+        return cls(np.asarray(verts), np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=name)
+
+    def to_obj(self, path: str | os.PathLike) -> None:
+        """Write the mesh as a Wavefront OBJ file."""
+        with open(path, "w", encoding="utf-8") as fh:
+            for p in self.vertices:
+                fh.write(f"v {p[0]!r} {p[1]!r} {p[2]!r}\n")
+            for t in self.triangles:
+                fh.write(f"f {t[0] + 1} {t[1] + 1} {t[2] + 1}\n")
+
+    @classmethod
+    def from_usd(cls, path: str | os.PathLike, prim_path: str | None = None, time=None) -> "TriMesh":
+        """Load a `UsdGeom.Mesh` (the first one found, or the one at ``prim_path``).
+
+        Points are taken at ``time`` (default: the default time) and transformed to world space;
+        polygons are fan-triangulated.
+        """
+        from pxr import Usd, UsdGeom
+
+        stage = Usd.Stage.Open(str(path))
+        if stage is None:
+            raise ValueError(f"{path}: cannot open USD stage")
+        if prim_path is not None:
+            prim = stage.GetPrimAtPath(prim_path)
+            if not prim or not prim.IsA(UsdGeom.Mesh):
+                raise ValueError(f"{path}: no UsdGeom.Mesh at {prim_path}")
+        else:
+            prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)), None)
+            if prim is None:
+                raise ValueError(f"{path}: no UsdGeom.Mesh in the stage")
+        mesh = UsdGeom.Mesh(prim)
+        t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
+        pts = np.asarray(mesh.GetPointsAttr().Get(t), dtype=np.float64)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(t), dtype=np.int64)
+        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(t), dtype=np.int64)
+        xf = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(t), dtype=np.float64)
+        pts = pts @ xf[:3, :3] + xf[3, :3]  # USD matrices act on row vectors
+        tris, o = [], 0
+        for c in counts:
+            if c < 3:
+                raise ValueError(f"{path}: face with {c} vertices in {prim.GetPath()}")
+            for q in range(1, c - 1):
+                tris.append((idx[o], idx[o + q], idx[o + q + 1]))
+            o += c
+        return cls(pts, np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=prim.GetName())

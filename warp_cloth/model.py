@@ -1,0 +1,327 @@
+"""`ClothModel` (constant device data for a run) and `State` (positions, velocities, time).
+
+The model is built once from a `TriMesh` and material parameters, in SI units:
+
+- lumped vertex masses from triangle area x areal density (kg/m^2), or given per vertex (kg);
+- springs (index pairs, rest lengths in m, stiffness in N/m): one on every mesh edge (stretch),
+  optionally shear springs (the missing diagonal of every grid cell) and bending springs (skip-one
+  springs along grid rows/columns; across every interior edge for unstructured meshes);
+- pinned vertices (inverse mass 0), optionally following a scripted `PinPath`;
+- gravity (m/s^2) and a velocity damping rate (1/s): ``v <- v * exp(-damping * dt)`` each step;
+- optional force terms that the solvers evaluate: wind (`warp_cloth.forces.wind.Wind`) and
+  dihedral or quadratic bending (`warp_cloth.forces.bending`).
+
+Only the force terms a model names are ever launched, so a cloth without wind or bending never
+compiles their kernels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .mesh import TriMesh
+
+__all__ = ["ClothModel", "State", "PinPath", "DEFAULT_DENSITY", "DEFAULT_STRETCH_STIFFNESS"]
+
+#: kg/m^2, a light cotton or polyester (real cloth: about 0.1-0.3 kg/m^2)
+DEFAULT_DENSITY = 0.15
+#: N/m per spring; for a spring grid this is close to the sheet's membrane stiffness, independent
+#: of resolution. Keeps the hanging 1 m sheet's stretch at a few tenths of a percent.
+DEFAULT_STRETCH_STIFFNESS = 1000.0
+
+BENDING_MODELS = ("none", "springs", "dihedral", "quadratic")
+
+
+@dataclass
+class PinPath:
+    """A scripted motion for the pinned vertices: keyframes interpolated linearly in time.
+
+    Args:
+        times: (K,) strictly increasing keyframe times in seconds. Before the first key the pins
+            sit at the first key; after the last they stay at the last.
+        positions: (K, P, 3) positions of the P pinned vertices (in the order of ``pins``) at each
+            key, in metres.
+
+    Use `PinPath.from_function` to sample any ``f(t) -> (P, 3)`` at chosen times.
+    """
+
+    times: np.ndarray
+    positions: np.ndarray
+
+    def __post_init__(self):
+        self.times = np.asarray(self.times, dtype=np.float64).reshape(-1)
+        self.positions = np.asarray(self.positions, dtype=np.float64)
+        k = len(self.times)
+        if k < 1:
+            raise ValueError("PinPath: needs at least one keyframe")
+        if self.positions.ndim != 3 or self.positions.shape[0] != k or self.positions.shape[2] != 3:
+            raise ValueError(
+                f"PinPath: positions must have shape (K={k}, P, 3), got {self.positions.shape}"
+            )
+        if not np.all(np.isfinite(self.times)) or not np.all(np.isfinite(self.positions)):
+            raise ValueError("PinPath: times and positions must be finite")
+        if k > 1 and np.any(np.diff(self.times) <= 0):
+            i = int(np.argmax(np.diff(self.times) <= 0))
+            raise ValueError(f"PinPath: times must increase strictly (key {i + 1})")
+
+    @classmethod
+    def from_function(cls, fn, times) -> "PinPath":
+        times = np.asarray(times, dtype=np.float64)
+        return cls(times, np.stack([np.asarray(fn(t), dtype=np.float64) for t in times]))
+
+
+class State:
+    """Positions ``x`` (m), velocities ``v`` (m/s) and the simulated time (s) on the device.
+
+    The time lives in a one-element device array so that a whole step, scripted pins and moving
+    obstacles included, can be recorded once as a Warp graph and replayed.
+    """
+
+    def __init__(self, x: wp.array, v: wp.array, time: wp.array):
+        self.x, self.v, self.time = x, v, time
+
+    @property
+    def t(self) -> float:
+        """The simulated time in seconds (a host read; not for use inside a step)."""
+        return float(self.time.numpy()[0])
+
+    def positions(self) -> np.ndarray:
+        return self.x.numpy().astype(np.float64)
+
+    def velocities(self) -> np.ndarray:
+        return self.v.numpy().astype(np.float64)
+
+    def clone(self) -> "State":
+        return State(wp.clone(self.x), wp.clone(self.v), wp.clone(self.time))
+
+    def assign(self, other: "State") -> None:
+        """Copy another state's arrays into this one (no allocation)."""
+        wp.copy(self.x, other.x)
+        wp.copy(self.v, other.v)
+        wp.copy(self.time, other.time)
+
+
+def _check_stiffness(name: str, k: float) -> float:
+    k = float(k)
+    if not (math.isfinite(k) and k >= 0.0):
+        raise ValueError(f"{name} must be finite and >= 0, got {k}")
+    return k
+
+
+class ClothModel:
+    """Constant device data of a cloth: masses, springs, pins, gravity, damping, force terms.
+
+    Args:
+        mesh: the cloth's `TriMesh` (rest shape = its vertices).
+        density: areal density in kg/m^2 for lumped masses (ignored if ``masses`` is given).
+        masses: optional (N,) vertex masses in kg (all > 0).
+        stretch_stiffness: N/m of the spring on every mesh edge.
+        shear_stiffness: N/m of the extra cell diagonal springs (grid meshes only); 0 = none.
+        bending: ``"none"``, ``"springs"`` (skip-one springs on a grid, across-edge springs on an
+            unstructured mesh), ``"dihedral"`` (Bridson et al. 2003) or ``"quadratic"`` (Bergou et
+            al. 2006).
+        bend_stiffness: N/m for bending springs; N*m for the dihedral and quadratic models.
+        spring_damping: N*s/m dashpot along every spring (explicit solver only; the implicit
+            methods damp numerically).
+        pins: vertex indices held fixed (inverse mass 0).
+        pin_path: optional `PinPath` the pins follow; without it they stay at their rest positions.
+        gravity: m/s^2.
+        damping: velocity damping rate in 1/s, ``v <- v exp(-damping dt)`` every step.
+        wind: optional `warp_cloth.forces.wind.Wind`.
+        velocity: optional initial velocity, (3,) or (N, 3), m/s.
+        device: Warp device (default: Warp's default device).
+    """
+
+    def __init__(
+        self,
+        mesh: TriMesh,
+        *,
+        density: float = DEFAULT_DENSITY,
+        masses=None,
+        stretch_stiffness: float = DEFAULT_STRETCH_STIFFNESS,
+        shear_stiffness: float = 0.0,
+        bending: str = "none",
+        bend_stiffness: float = 0.0,
+        spring_damping: float = 0.0,
+        pins=(),
+        pin_path: PinPath | None = None,
+        gravity=(0.0, -9.81, 0.0),
+        damping: float = 0.0,
+        wind=None,
+        velocity=None,
+        device=None,
+    ):
+        if not isinstance(mesh, TriMesh):
+            raise TypeError(f"mesh must be a TriMesh, got {type(mesh).__name__}")
+        self.mesh = mesh
+        self.device = wp.get_device(device)
+        n = mesh.num_vertices
+
+        # ---- masses
+        if masses is None:
+            density = float(density)
+            if not (math.isfinite(density) and density > 0):
+                raise ValueError(f"density must be a positive finite number (kg/m^2), got {density}")
+            m = mesh.vertex_areas() * density
+            self.density = density
+        else:
+            m = np.asarray(masses, dtype=np.float64).reshape(-1)
+            if len(m) != n:
+                raise ValueError(f"masses has {len(m)} entries, the mesh has {n} vertices")
+            self.density = None
+        bad = np.flatnonzero(~(np.isfinite(m) & (m > 0)))
+        if len(bad):
+            raise ValueError(f"vertex {int(bad[0])} has non-positive or non-finite mass {m[bad[0]]}")
+
+        # ---- pins
+        pins = np.asarray(pins, dtype=np.int64).reshape(-1)
+        bad = np.flatnonzero((pins < 0) | (pins >= n))
+        if len(bad):
+            raise ValueError(f"pin {int(pins[bad[0]])} is not a vertex index in [0, {n - 1}]")
+        uniq, cnt = np.unique(pins, return_counts=True)
+        if (cnt > 1).any():
+            raise ValueError(f"vertex {int(uniq[np.argmax(cnt > 1)])} is pinned twice")
+        self.pins = pins
+        inv_m = 1.0 / m
+        inv_m[pins] = 0.0
+        self.masses = m
+        self.inverse_masses = inv_m
+
+        if pin_path is not None:
+            if not isinstance(pin_path, PinPath):
+                raise TypeError("pin_path must be a PinPath")
+            if pin_path.positions.shape[1] != len(pins):
+                raise ValueError(
+                    f"pin_path moves {pin_path.positions.shape[1]} vertices, pins has {len(pins)}"
+                )
+        self.pin_path = pin_path
+
+        # ---- springs
+        self.stretch_stiffness = _check_stiffness("stretch_stiffness", stretch_stiffness)
+        self.shear_stiffness = _check_stiffness("shear_stiffness", shear_stiffness)
+        self.bend_stiffness = _check_stiffness("bend_stiffness", bend_stiffness)
+        self.spring_damping = _check_stiffness("spring_damping", spring_damping)
+        if bending not in BENDING_MODELS:
+            raise ValueError(f"bending must be one of {BENDING_MODELS}, got {bending!r}")
+        self.bending = bending
+        pairs, ks, kinds = [mesh.edges], [np.full(len(mesh.edges), self.stretch_stiffness)], ["stretch"]
+        if self.shear_stiffness > 0:
+            sh = self._shear_pairs()
+            pairs.append(sh), ks.append(np.full(len(sh), self.shear_stiffness)), kinds.append("shear")
+        if bending == "springs" and self.bend_stiffness > 0:
+            bp = self._bend_spring_pairs()
+            pairs.append(bp), ks.append(np.full(len(bp), self.bend_stiffness)), kinds.append("bend")
+        pairs = np.concatenate(pairs).astype(np.int64)
+        self.spring_pairs = pairs
+        self.spring_stiffness = np.concatenate(ks)
+        x0 = mesh.vertices
+        self.spring_rest = np.linalg.norm(x0[pairs[:, 0]] - x0[pairs[:, 1]], axis=1)
+        self.num_stretch_springs = len(mesh.edges)  # the first springs are the mesh edges
+
+        # ---- global parameters
+        g = np.asarray(gravity, dtype=np.float64).reshape(-1)
+        if g.shape != (3,) or not np.all(np.isfinite(g)):
+            raise ValueError(f"gravity must be 3 finite numbers, got {gravity}")
+        self.gravity = tuple(float(c) for c in g)
+        self.damping = _check_stiffness("damping", damping)
+
+        v0 = np.zeros((n, 3))
+        if velocity is not None:
+            v0 = np.broadcast_to(np.asarray(velocity, dtype=np.float64), (n, 3)).copy()
+            if not np.all(np.isfinite(v0)):
+                raise ValueError("initial velocity must be finite")
+            v0[pins] = 0.0
+        self.initial_velocity = v0
+
+        # ---- device arrays (built once)
+        d = self.device
+        self.num_vertices = n
+        self.num_triangles = mesh.num_triangles
+        self.num_springs = len(pairs)
+        self.x_rest = wp.array(x0, dtype=wp.vec3, device=d)
+        self.mass = wp.array(m, dtype=wp.float32, device=d)
+        self.inv_mass = wp.array(inv_m, dtype=wp.float32, device=d)
+        self.tri_indices = wp.array(mesh.triangles.astype(np.int32), dtype=wp.int32, ndim=2, device=d)
+        self.spring_indices = wp.array(pairs.astype(np.int32), dtype=wp.int32, ndim=2, device=d)
+        self.spring_rest_length = wp.array(self.spring_rest, dtype=wp.float32, device=d)
+        self.spring_k = wp.array(self.spring_stiffness, dtype=wp.float32, device=d)
+        self.pin_indices = wp.array(pins.astype(np.int32), dtype=wp.int32, device=d)
+        if pin_path is not None:
+            self.pin_times = wp.array(pin_path.times, dtype=wp.float64, device=d)
+            self.pin_keys = wp.array(
+                pin_path.positions.reshape(-1, 3), dtype=wp.vec3, device=d
+            )  # key k, pin p at k * P + p
+        else:
+            self.pin_times = None
+            self.pin_keys = None
+
+        # ---- optional force terms (each in its own Warp module)
+        self.force_terms = []
+        from .forces.springs import SpringForce
+
+        if self.num_springs:
+            self.force_terms.append(SpringForce(self))
+        if bending in ("dihedral", "quadratic") and self.bend_stiffness > 0:
+            from .forces import bending as _bending
+
+            cls = _bending.DihedralBending if bending == "dihedral" else _bending.QuadraticBending
+            self.force_terms.append(cls(self, self.bend_stiffness))
+        self.wind = wind
+        if wind is not None:
+            self.force_terms.append(wind.bind(self))
+
+    # ------------------------------------------------------------------ helpers
+    def _shear_pairs(self) -> np.ndarray:
+        if self.mesh.grid_shape is None:
+            raise ValueError("shear_stiffness > 0 needs a structured grid mesh (TriMesh.grid)")
+        nx, ny = self.mesh.grid_shape
+        have = {tuple(e) for e in self.mesh.edges.tolist()}
+        out = []
+        for j in range(ny):
+            for i in range(nx):
+                v00 = j * (nx + 1) + i
+                for a, b in ((v00, v00 + nx + 2), (v00 + 1, v00 + nx + 1)):
+                    if (min(a, b), max(a, b)) not in have:
+                        out.append((min(a, b), max(a, b)))
+        return np.asarray(out, dtype=np.int64).reshape(-1, 2)
+
+    def _bend_spring_pairs(self) -> np.ndarray:
+        if self.mesh.grid_shape is None:
+            return self.mesh.bending_pairs
+        nx, ny = self.mesh.grid_shape
+        out = []
+        for j in range(ny + 1):
+            for i in range(nx + 1):
+                v = j * (nx + 1) + i
+                if i + 2 <= nx:
+                    out.append((v, v + 2))
+                if j + 2 <= ny:
+                    out.append((v, v + 2 * (nx + 1)))
+        return np.asarray(out, dtype=np.int64).reshape(-1, 2)
+
+    def state(self) -> State:
+        """A new state at the rest shape with the initial velocity, at time 0."""
+        d = self.device
+        return State(
+            wp.array(self.mesh.vertices, dtype=wp.vec3, device=d),
+            wp.array(self.initial_velocity, dtype=wp.vec3, device=d),
+            wp.zeros(1, dtype=wp.float64, device=d),
+        )
+
+    @property
+    def total_mass(self) -> float:
+        return float(self.masses.sum())
+
+    def has_term(self, cls) -> bool:
+        return any(isinstance(t, cls) for t in self.force_terms)
+
+    def __repr__(self) -> str:
+        return (
+            f"ClothModel({self.num_vertices} vertices, {self.num_triangles} triangles, "
+            f"{self.num_springs} springs, {len(self.pins)} pins, bending={self.bending!r}, "
+            f"device={self.device})"
+        )
