@@ -1,0 +1,482 @@
+"""Inner linear solvers for ``A x = b`` with one ``vec3`` unknown per vertex (``physics.md`` 2.4).
+
+All three solvers are matrix-free and share one interface::
+
+    solver = make_linear_solver("cg" | "jacobi" | "chebyshev", **options)
+    info = solver.solve(A, b, x)        # x: initial guess in, solution out (warm start)
+
+``A`` is any operator with
+
+- ``n``, ``device``;
+- ``matvec(x, out)``: ``out = A x`` (the operator clears ``out`` itself);
+- ``diag_inv``: ``wp.array(dtype=wp.mat33)``, the inverse 3x3 diagonal blocks of ``A``, and
+  *zero blocks for eliminated (pinned) vertices*;
+- ``free``: ``wp.array(dtype=float)``, 1 for free vertices, 0 for eliminated ones.
+
+Pinned vertices are eliminated (reduced coordinates, ``physics.md`` 2.15): the solvers never
+change their entries of ``x`` (which the caller keeps at 0 for an increment), and residual norms
+are taken over free vertices only. That is the notes' ``K A K^T x_f = K b`` without building K.
+
+- **Jacobi** (block-diagonal, relaxed by ``alpha``): ``x <- x + alpha D^-1 (b - A x)``.
+  Converges for any s.p.d. A when ``alpha`` is small enough (L1000-1001).
+- **Chebyshev-Jacobi** (Wang 2015, the notes' L1023-1041): the Jacobi iterate is blended with the
+  one before it, ``x <- omega (x + alpha D^-1 r) + (1 - omega) x_prev`` with the omega recurrence
+  from the estimated spectral radius ``rho`` of the Jacobi iteration, after ``delay`` plain
+  iterations. `estimate_spectral_radius` measures rho for an operator. An overestimated rho
+  diverges: when residual checks are on (``tolerance`` or ``check_every``) a growing residual
+  restores the iterate of the last check and finishes with plain Jacobi (``info["fallback"]``).
+- **CG** with the block-Jacobi preconditioner. Scalars (``r.z``, ``p.Ap``) stay on the device, so
+  with a fixed iteration count a solve makes no host read and can be captured in a Warp graph.
+
+``tolerance`` is on the relative residual ``||b - A x|| / ||b||`` (free vertices). With
+``tolerance=None`` a solver runs exactly ``iterations`` iterations and reads nothing back
+(capturable); otherwise it checks every ``check_every`` iterations (one small host read each).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+__all__ = [
+    "JacobiSolver", "ChebyshevSolver", "CGSolver", "make_linear_solver", "SpringSystemOperator",
+    "estimate_spectral_radius", "dense_matrix", "LINEAR_SOLVERS",
+]
+
+
+# ----------------------------------------------------------------------------------- kernels
+@wp.kernel
+def _residual_kernel(b: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3),
+                     free: wp.array(dtype=float), r: wp.array(dtype=wp.vec3),
+                     sums: wp.array(dtype=wp.float64), slot: int):
+    i = wp.tid()
+    ri = (b[i] - ax[i]) * free[i]
+    r[i] = ri
+    wp.atomic_add(sums, slot, wp.float64(wp.dot(ri, ri)))
+
+
+@wp.kernel
+def _norm2_kernel(b: wp.array(dtype=wp.vec3), free: wp.array(dtype=float),
+                  sums: wp.array(dtype=wp.float64), slot: int):
+    i = wp.tid()
+    bi = b[i] * free[i]
+    wp.atomic_add(sums, slot, wp.float64(wp.dot(bi, bi)))
+
+
+@wp.kernel
+def _jacobi_update_kernel(x: wp.array(dtype=wp.vec3), last: wp.array(dtype=wp.vec3),
+                          b: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3),
+                          dinv: wp.array(dtype=wp.mat33), free: wp.array(dtype=float),
+                          alpha: float, omega: float, sums: wp.array(dtype=wp.float64), slot: int):
+    """r = b - Ax; x_new = omega (x + alpha D^-1 r) + (1 - omega) last; last = x."""
+    i = wp.tid()
+    r = (b[i] - ax[i]) * free[i]
+    wp.atomic_add(sums, slot, wp.float64(wp.dot(r, r)))
+    xi = x[i]
+    xn = xi + alpha * (dinv[i] * r)
+    if omega != 1.0:
+        xn = omega * xn + (1.0 - omega) * last[i]
+    last[i] = xi
+    x[i] = xn
+
+
+@wp.kernel
+def _cg_init_kernel(r: wp.array(dtype=wp.vec3), dinv: wp.array(dtype=wp.mat33),
+                    z: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3),
+                    rz: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    zi = dinv[i] * r[i]
+    z[i] = zi
+    p[i] = zi
+    wp.atomic_add(rz, 0, wp.float64(wp.dot(r[i], zi)))
+
+
+@wp.kernel
+def _dot_kernel(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3),
+                free: wp.array(dtype=float), out: wp.array(dtype=wp.float64), slot: int):
+    i = wp.tid()
+    wp.atomic_add(out, slot, wp.float64(wp.dot(a[i], b[i]) * free[i]))
+
+
+@wp.kernel
+def _cg_update_kernel(x: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3),
+                      z: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3),
+                      ap: wp.array(dtype=wp.vec3), dinv: wp.array(dtype=wp.mat33),
+                      free: wp.array(dtype=float), rz: wp.array(dtype=wp.float64),
+                      pap: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.float64), k: int):
+    """alpha = rz_k / pAp_k; x += alpha p; r -= alpha Ap; z = D^-1 r; rz_{k+1} = r.z; rr_k = r.r."""
+    i = wp.tid()
+    alpha = wp.float64(0.0)
+    if pap[k] > wp.float64(0.0):
+        alpha = rz[k] / pap[k]
+    a = float(alpha)
+    x[i] = x[i] + a * p[i]
+    ri = (r[i] - a * ap[i]) * free[i]
+    r[i] = ri
+    zi = dinv[i] * ri
+    z[i] = zi
+    wp.atomic_add(rz, k + 1, wp.float64(wp.dot(ri, zi)))
+    wp.atomic_add(rr, k, wp.float64(wp.dot(ri, ri)))
+
+
+@wp.kernel
+def _cg_direction_kernel(z: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3),
+                         rz: wp.array(dtype=wp.float64), k: int):
+    i = wp.tid()
+    beta = wp.float64(0.0)
+    if rz[k] > wp.float64(0.0):
+        beta = rz[k + 1] / rz[k]
+    p[i] = z[i] + float(beta) * p[i]
+
+
+# ----------------------------------------------------------------------------------- solvers
+class _Base:
+    name = "base"
+
+    def __init__(self, iterations: int = 100, tolerance: float | None = 1e-4,
+                 check_every: int | None = None):
+        if int(iterations) != iterations or iterations < 1:
+            raise ValueError(f"{self.name}: iterations must be a positive integer, got {iterations}")
+        if tolerance is not None and not (tolerance > 0 and math.isfinite(tolerance)):
+            raise ValueError(f"{self.name}: tolerance must be > 0 or None, got {tolerance}")
+        if check_every is not None and (int(check_every) != check_every or check_every < 1):
+            raise ValueError(f"{self.name}: check_every must be a positive integer")
+        self.iterations = int(iterations)
+        self.tolerance = tolerance
+        self.check_every = check_every if check_every is not None else (
+            None if tolerance is None else 1)
+        self._n = None
+
+    @property
+    def capturable(self) -> bool:
+        """True when a solve makes no host read (fixed iterations, no checks)."""
+        return self.tolerance is None and self.check_every is None
+
+    def _alloc(self, A):
+        if self._n == A.n and self._device == A.device:
+            return
+        n, d = A.n, A.device
+        self._n, self._device = n, d
+        self.ax = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.r = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.z = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.p = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.last = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.saved = wp.zeros(n, dtype=wp.vec3, device=d)
+        m = self.iterations + 2
+        self.s1 = wp.zeros(m, dtype=wp.float64, device=d)
+        self.s2 = wp.zeros(m, dtype=wp.float64, device=d)
+        self.s3 = wp.zeros(m, dtype=wp.float64, device=d)
+        self.bnorm = wp.zeros(1, dtype=wp.float64, device=d)
+
+    def _bnorm2(self, A, b):
+        self.bnorm.zero_()
+        wp.launch(_norm2_kernel, A.n, [b, A.free, self.bnorm, 0], device=A.device)
+
+    def solve(self, A, b, x, iterations: int | None = None, tolerance=..., ) -> dict:
+        """Solve ``A x = b`` starting from ``x`` (updated in place). Returns
+        ``{"iterations", "residual" (relative, nan when not measured), "converged", ...}``."""
+        raise NotImplementedError
+
+
+class JacobiSolver(_Base):
+    """Block-Jacobi with relaxation ``alpha`` (and, in the subclass, Chebyshev acceleration)."""
+
+    name = "jacobi"
+
+    def __init__(self, iterations: int = 100, tolerance: float | None = 1e-4, alpha: float = 0.66,
+                 check_every: int | None = None):
+        super().__init__(iterations, tolerance, check_every)
+        if not (0 < alpha <= 2):
+            raise ValueError(f"{self.name}: alpha must be in (0, 2], got {alpha}")
+        self.alpha = float(alpha)
+
+    def _omegas(self, iters):
+        return [1.0] * iters
+
+    def solve(self, A, b, x, iterations=None, tolerance=...):
+        self._alloc(A)
+        iters = self.iterations if iterations is None else int(iterations)
+        tol = self.tolerance if tolerance is ... else tolerance
+        check = self.check_every if (tolerance is ... or tol is None) else (self.check_every or 1)
+        if iters + 2 > self.s1.shape[0]:
+            self.s1 = wp.zeros(iters + 2, dtype=wp.float64, device=A.device)
+        d = A.device
+        sums = self.s1
+        sums.zero_()
+        wp.copy(self.last, x)
+        omegas = self._omegas(iters)
+        bn = None
+        if check is not None:
+            self._bnorm2(A, b)
+            bn = math.sqrt(float(self.bnorm.numpy()[0])) or 1.0
+            wp.copy(self.saved, x)
+        best = math.inf
+        fallback = converged = False
+        done = iters
+        res = float("nan")
+        k = 0
+        while k < iters:
+            A.matvec(x, self.ax)
+            om = 1.0 if fallback else omegas[k]
+            wp.launch(_jacobi_update_kernel, A.n,
+                      [x, self.last, b, self.ax, A.diag_inv, A.free, self.alpha, om, sums, k],
+                      device=d)
+            k += 1
+            if check is not None and (k % check == 0 or k == iters):
+                # sums[k-1] holds ||r||^2 of the iterate BEFORE update k
+                rel = math.sqrt(float(sums.numpy()[k - 1])) / bn
+                if not math.isfinite(rel) or rel > 4.0 * best:
+                    if not fallback and om != 1.0 or not math.isfinite(rel):
+                        wp.copy(x, self.saved)  # back to the last good iterate
+                        wp.copy(self.last, x)
+                        fallback = True
+                        continue
+                if rel < best:
+                    best = rel
+                    wp.copy(self.saved, self.last)  # the iterate whose residual is rel
+                res = rel
+                if tol is not None and rel < tol:
+                    done, converged = k, True
+                    break
+        if check is not None:
+            # residual of the final iterate
+            A.matvec(x, self.ax)
+            tmp = self.s2
+            tmp.zero_()
+            wp.launch(_residual_kernel, A.n, [b, self.ax, A.free, self.r, tmp, 0], device=d)
+            res = math.sqrt(float(tmp.numpy()[0])) / bn
+        return {"iterations": done, "residual": res,
+                "converged": converged or (tol is not None and res < tol), "fallback": fallback}
+
+
+class ChebyshevSolver(JacobiSolver):
+    """Chebyshev-accelerated block Jacobi (Wang 2015; notes L1023-1041).
+
+    Args:
+        rho: estimated spectral radius of the Jacobi iteration matrix ``I - alpha D^-1 A``
+            (< 1). Too large diverges (caught when checks are on), too small accelerates less;
+            `estimate_spectral_radius` measures it.
+        delay: plain Jacobi iterations before the acceleration starts (Wang uses about 10).
+        alpha: Jacobi relaxation.
+    """
+
+    name = "chebyshev"
+
+    def __init__(self, iterations: int = 100, tolerance: float | None = 1e-4, alpha: float = 0.66,
+                 rho: float = 0.99, delay: int = 5, check_every: int | None = None):
+        super().__init__(iterations, tolerance, alpha, check_every)
+        if not (0 <= rho < 1):
+            raise ValueError(f"chebyshev: rho must be in [0, 1), got {rho}")
+        if int(delay) != delay or delay < 0:
+            raise ValueError(f"chebyshev: delay must be an integer >= 0, got {delay}")
+        self.rho, self.delay = float(rho), int(delay)
+
+    def _omegas(self, iters):
+        out, om = [], 1.0
+        for k in range(iters):
+            j = k - self.delay
+            if j < 0 or j == 0:
+                om = 1.0
+            elif j == 1:
+                om = 2.0 / (2.0 - self.rho ** 2)
+            else:
+                om = 4.0 / (4.0 - self.rho ** 2 * om)
+            out.append(om)
+        return out
+
+
+class CGSolver(_Base):
+    """Conjugate gradient with the block-Jacobi preconditioner. Needs an s.p.d. A (use the
+    definiteness fix for springs). 5 launches per iteration (operator matvec included: 2)."""
+
+    name = "cg"
+
+    def solve(self, A, b, x, iterations=None, tolerance=...):
+        self._alloc(A)
+        iters = self.iterations if iterations is None else int(iterations)
+        tol = self.tolerance if tolerance is ... else tolerance
+        check = self.check_every if (tolerance is ... or tol is None) else (self.check_every or 1)
+        if iters + 2 > self.s1.shape[0]:
+            for name in ("s1", "s2", "s3"):
+                setattr(self, name, wp.zeros(iters + 2, dtype=wp.float64, device=A.device))
+        d, n = A.device, A.n
+        rz, pap, rr = self.s1, self.s2, self.s3
+        rz.zero_(), pap.zero_(), rr.zero_()
+        A.matvec(x, self.ax)
+        wp.launch(_residual_kernel, n, [b, self.ax, A.free, self.r, self.bnorm, 0], device=d)
+        wp.launch(_cg_init_kernel, n, [self.r, A.diag_inv, self.z, self.p, rz], device=d)
+        bn = None
+        if check is not None:
+            self._bnorm2(A, b)
+            bn = math.sqrt(float(self.bnorm.numpy()[0])) or 1.0
+        done, res = iters, float("nan")
+        for k in range(iters):
+            A.matvec(self.p, self.ax)
+            wp.launch(_dot_kernel, n, [self.p, self.ax, A.free, pap, k], device=d)
+            wp.launch(_cg_update_kernel, n,
+                      [x, self.r, self.z, self.p, self.ax, A.diag_inv, A.free, rz, pap, rr, k],
+                      device=d)
+            if check is not None and ((k + 1) % check == 0 or k + 1 == iters):
+                res = math.sqrt(float(rr.numpy()[k])) / bn
+                if tol is not None and res < tol:
+                    done = k + 1
+                    break
+            if k + 1 < iters:
+                wp.launch(_cg_direction_kernel, n, [self.z, self.p, rz, k], device=d)
+        return {"iterations": done, "residual": res,
+                "converged": tol is not None and res < tol, "fallback": False}
+
+
+LINEAR_SOLVERS = {"jacobi": JacobiSolver, "chebyshev": ChebyshevSolver, "cg": CGSolver}
+
+
+def make_linear_solver(name: str, **options):
+    """Build ``"jacobi"``, ``"chebyshev"`` or ``"cg"`` with its keyword options."""
+    if name not in LINEAR_SOLVERS:
+        raise ValueError(f"unknown linear solver {name!r}; choose one of {sorted(LINEAR_SOLVERS)}")
+    return LINEAR_SOLVERS[name](**options)
+
+
+# ----------------------------------------------------------------------------------- operator
+@wp.kernel
+def _diag_matvec_kernel(x: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), scale: float,
+                        out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    out[i] = (scale * mass[i]) * x[i]
+
+
+@wp.kernel
+def _spring_matvec_kernel(x: wp.array(dtype=wp.vec3), springs: wp.array2d(dtype=wp.int32),
+                          blocks: wp.array(dtype=wp.mat33), out: wp.array(dtype=wp.vec3)):
+    e = wp.tid()
+    i = springs[e, 0]
+    j = springs[e, 1]
+    y = blocks[e] * (x[i] - x[j])
+    wp.atomic_add(out, i, y)
+    wp.atomic_sub(out, j, y)
+
+
+@wp.kernel
+def _diag_init_kernel(mass: wp.array(dtype=float), scale: float, diag: wp.array(dtype=wp.mat33)):
+    i = wp.tid()
+    diag[i] = (scale * mass[i]) * wp.identity(n=3, dtype=float)
+
+
+@wp.kernel
+def _spring_diag_kernel(springs: wp.array2d(dtype=wp.int32), blocks: wp.array(dtype=wp.mat33),
+                        diag: wp.array(dtype=wp.mat33)):
+    e = wp.tid()
+    wp.atomic_add(diag, springs[e, 0], blocks[e])
+    wp.atomic_add(diag, springs[e, 1], blocks[e])
+
+
+@wp.kernel
+def _diag_invert_kernel(diag: wp.array(dtype=wp.mat33), free: wp.array(dtype=float),
+                        dinv: wp.array(dtype=wp.mat33)):
+    i = wp.tid()
+    if free[i] > 0.0:
+        dinv[i] = wp.inverse(diag[i])
+    else:
+        dinv[i] = wp.mat33(0.0)
+
+
+@wp.kernel
+def _fill_blocks_kernel(k: wp.array(dtype=float), blocks: wp.array(dtype=wp.mat33)):
+    e = wp.tid()
+    blocks[e] = k[e] * wp.identity(n=3, dtype=float)
+
+
+class SpringSystemOperator:
+    """``A = mass_scale * M + sum_e [[H_e, -H_e], [-H_e, H_e]] (+ extra terms)``, matrix-free.
+
+    ``blocks`` holds one 3x3 ``H_e`` per spring of the model: the implicit solver refills it with
+    the spring Hessians every Newton iteration; projective dynamics fills it once with
+    ``k_e I`` (`fill_laplacian`), which makes ``A = M/dt^2 + L (x) I_3``.
+
+    ``extra`` terms (e.g. bending) provide ``matvec_add(x, out)`` and ``add_diagonal(diag)``.
+    Call `update` after changing the blocks, the extra terms or ``mass_scale``.
+    Pinned vertices (``model.inv_mass == 0``) are eliminated.
+    """
+
+    def __init__(self, model, mass_scale: float, extra=()):
+        self.model = model
+        self.n = model.num_vertices
+        self.device = model.device
+        self.mass_scale = float(mass_scale)
+        self.extra = list(extra)
+        d = self.device
+        self.blocks = wp.zeros(max(model.num_springs, 1), dtype=wp.mat33, device=d)
+        self.diag = wp.zeros(self.n, dtype=wp.mat33, device=d)
+        self.diag_inv = wp.zeros(self.n, dtype=wp.mat33, device=d)
+        free = (model.inverse_masses > 0).astype(np.float32)
+        self.free = wp.array(free, dtype=wp.float32, device=d)
+
+    def fill_laplacian(self):
+        """``H_e = k_e I`` for every spring (the projective-dynamics / Liu 2013 matrix)."""
+        m = self.model
+        if m.num_springs:
+            wp.launch(_fill_blocks_kernel, m.num_springs, [m.spring_k, self.blocks], device=self.device)
+
+    def update(self, mass_scale: float | None = None):
+        if mass_scale is not None:
+            self.mass_scale = float(mass_scale)
+        m, d = self.model, self.device
+        wp.launch(_diag_init_kernel, self.n, [m.mass, self.mass_scale, self.diag], device=d)
+        if m.num_springs:
+            wp.launch(_spring_diag_kernel, m.num_springs, [m.spring_indices, self.blocks, self.diag],
+                      device=d)
+        for t in self.extra:
+            t.add_diagonal(self.diag)
+        wp.launch(_diag_invert_kernel, self.n, [self.diag, self.free, self.diag_inv], device=d)
+
+    def matvec(self, x, out):
+        m, d = self.model, self.device
+        wp.launch(_diag_matvec_kernel, self.n, [x, m.mass, self.mass_scale, out], device=d)
+        if m.num_springs:
+            wp.launch(_spring_matvec_kernel, m.num_springs, [x, m.spring_indices, self.blocks, out],
+                      device=d)
+        for t in self.extra:
+            t.matvec_add(x, out)
+
+
+# ----------------------------------------------------------------------------------- helpers
+def dense_matrix(A) -> np.ndarray:
+    """Assemble ``A`` as a dense (3n x 3n) NumPy matrix by matvecs with unit vectors (tests only)."""
+    n = A.n
+    out = np.zeros((3 * n, 3 * n))
+    e = wp.zeros(n, dtype=wp.vec3, device=A.device)
+    y = wp.zeros(n, dtype=wp.vec3, device=A.device)
+    for c in range(3 * n):
+        h = np.zeros((n, 3), dtype=np.float32)
+        h.reshape(-1)[c] = 1.0
+        e.assign(h)
+        A.matvec(e, y)
+        out[:, c] = y.numpy().reshape(-1)
+    return out
+
+
+def estimate_spectral_radius(A, alpha: float = 0.66, iterations: int = 60, seed: int = 0) -> float:
+    """Spectral radius of the Jacobi iteration matrix ``I - alpha D^-1 A`` (free vertices),
+    measured by running the iteration on ``A e = 0`` from a random start: the geometric mean of
+    the last residual ratios. Use it to set `ChebyshevSolver` ``rho`` (slightly above is unsafe)."""
+    n, d = A.n, A.device
+    rng = np.random.default_rng(seed)
+    x = wp.array(rng.standard_normal((n, 3)).astype(np.float32) * A.free.numpy()[:, None],
+                 dtype=wp.vec3, device=d)
+    b = wp.zeros(n, dtype=wp.vec3, device=d)
+    last = wp.clone(x)
+    ax = wp.zeros(n, dtype=wp.vec3, device=d)
+    sums = wp.zeros(iterations, dtype=wp.float64, device=d)
+    for k in range(iterations):
+        A.matvec(x, ax)
+        wp.launch(_jacobi_update_kernel, n, [x, last, b, ax, A.diag_inv, A.free, float(alpha), 1.0,
+                                             sums, k], device=d)
+    r = np.sqrt(sums.numpy())
+    tail = max(2, iterations // 3)
+    r = r[-tail:]
+    if r[0] <= 0:
+        return 0.0
+    return float((r[-1] / r[0]) ** (1.0 / (len(r) - 1)))
