@@ -1,0 +1,506 @@
+"""Projective dynamics for the mass-spring cloth: implicit Euler by local/global iterations.
+
+One step minimises the implicit-Euler objective (``physics.md`` 2.3, L939-941)
+
+    F(x) = 1/(2 dt^2) ||x - y||_M^2 + E(x),     y = x_n + dt v_n + dt^2 g
+
+by alternating, ``iterations`` times (Liu et al. 2013, "Fast Simulation of Mass-Spring
+Systems"; Bouaziz et al. 2014, "Projective Dynamics"; the notes' L1443-1500 and 001:L72-108):
+
+- **local step**, one thread per spring: project the spring onto its rest length,
+  ``d_e = L_e (x_i - x_j) / |x_i - x_j|``, and scatter the projective force
+  ``f_i = -k_e ((x_i - x_j) - d_e)`` (= the mass-spring force, L1456; T32) with atomics; the same
+  thread adds ``1/2 k_e (|x_ij| - L_e)^2`` to the objective;
+- **global step**: solve the constant system
+
+      (M/dt^2 + L + Q) dx = M/dt^2 (y - x) + f(x)                  (GAMES103 form, L1484-1500)
+
+  for the increment ``dx`` with ``L = sum_e k_e A_e A_e^T (x) I_3`` the stiffness-weighted graph
+  Laplacian (T33) and ``Q`` the constant Hessian of quadratic bending (Bergou et al. 2006), then
+  ``x <- x + dx``. With ``dx`` started at 0 this is Liu's ``(M + h^2 L) x = M y + h^2 J d`` solved
+  warm-started from the current iterate (the two forms agree exactly, T34; Liu's is ours times
+  ``h^2``).
+
+The global solve uses the shared inner solvers of `warp_cloth.solvers.linear` (block Jacobi,
+Chebyshev-Jacobi after Wang 2015 with the spectral radius measured by
+`linear.estimate_spectral_radius` and exposed as ``solver.rho``, preconditioned CG) on a
+gather-form operator (`PDSystemOperator`, one thread per vertex, no atomics), or, with
+``direct=True``, a dense inverse of the constant matrix precomputed on the host (small meshes).
+
+Pins, scripted ones included, are eliminated: their rows of ``dx`` stay 0 and they keep the
+end-of-step targets `Solver.step` put them at (``physics.md`` 2.15, 001:L119-140). Velocities are
+``v = (x_{n+1} - x_n)/dt * exp(-damping dt)``.
+
+Other force terms of the model are explicit forces evaluated at the current iterate in every
+outer iteration (so they are implicit at convergence): dihedral bending, and wind with the
+start-of-step velocity. Their Hessians are not in the matrix, which is constant for the run.
+
+Convergence (measured by ``warp-cloth bench pd``; see the module's table): PD is a descent method
+on F (T36: the objective decreases monotonically when the global solve is exact), fast in the
+first iterations and slow later (T35, L1515-1518), because its matrix ignores the Hessian of the
+projections. For the default hanging cloth (32 x 32, 1000 N/m, 0.15 kg/m^2, 60 fps) the
+stretched springs' transverse stiffness is tiny while PD's matrix charges them the full ``k``, so
+low-frequency swinging modes converge slowly: see the table in `warp_cloth.bench.pd` for the
+distance to the converged Newton state after N iterations.
+
+Limitations: the matrix is built for one ``dt`` (rebuilt on the host when ``dt`` changes);
+Chebyshev needs ``rho`` below the true spectral radius bound (an overestimate diverges; the
+linear solver falls back to Jacobi only when residual checks are on); spring dashpots
+(``model.spring_damping``) are not modelled (explicit solver only); the step is an approximation
+of implicit Euler, as good as the number of iterations.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from .base import Solver
+from .linear import LINEAR_SOLVERS, estimate_spectral_radius, make_linear_solver
+
+__all__ = ["ProjectiveDynamics", "PDSystemOperator"]
+
+
+# ----------------------------------------------------------------------------------- kernels
+@wp.kernel
+def pd_predict_kernel(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    gravity: wp.vec3,
+    dt: float,
+    x0: wp.array(dtype=wp.vec3),
+    y: wp.array(dtype=wp.vec3),
+):
+    """x0 = x; y = x + dt v + dt^2 g (free vertices); the first iterate is y."""
+    i = wp.tid()
+    xi = x[i]
+    x0[i] = xi
+    yi = xi
+    if inv_mass[i] > 0.0:
+        yi = xi + dt * v[i] + (dt * dt) * gravity
+    y[i] = yi
+    x[i] = yi
+
+
+@wp.kernel
+def pd_local_kernel(
+    x: wp.array(dtype=wp.vec3),
+    springs: wp.array2d(dtype=wp.int32),
+    rest: wp.array(dtype=float),
+    stiffness: wp.array(dtype=float),
+    d: wp.array(dtype=wp.vec3),
+    f: wp.array(dtype=wp.vec3),
+    objective: wp.array(dtype=wp.float64),
+    slot: int,
+):
+    """Local step: d_e = L_e x_ij/|x_ij|; f_i += -k (x_ij - d_e), f_j -= ...; F += k/2 |x_ij - d_e|^2."""
+    e = wp.tid()
+    i = springs[e, 0]
+    j = springs[e, 1]
+    xij = x[i] - x[j]
+    l = wp.length(xij)
+    de = xij  # degenerate spring: no direction to project on, no force
+    if l > 1.0e-12:
+        de = (rest[e] / l) * xij
+    d[e] = de
+    k = stiffness[e]
+    s = xij - de
+    fi = -k * s
+    wp.atomic_add(f, i, fi)
+    wp.atomic_sub(f, j, fi)
+    wp.atomic_add(objective, slot, wp.float64(0.5 * k * wp.dot(s, s)))
+
+
+@wp.kernel
+def pd_rhs_kernel(
+    x: wp.array(dtype=wp.vec3),
+    y: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    free: wp.array(dtype=float),
+    inv_dt2: float,
+    f: wp.array(dtype=wp.vec3),
+    b: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    objective: wp.array(dtype=wp.float64),
+    gradient: wp.array(dtype=wp.float64),
+    slot: int,
+):
+    """b = -grad F = M/dt^2 (y - x) + f (free vertices, else 0); F += |x - y|_M^2/(2 dt^2);
+    |grad F|^2 into ``gradient``; clears f and the increment dx for the next use."""
+    i = wp.tid()
+    bi = wp.vec3(0.0)
+    if free[i] > 0.0:
+        r = x[i] - y[i]
+        mi = mass[i] * inv_dt2
+        bi = f[i] - mi * r
+        wp.atomic_add(objective, slot, wp.float64(0.5 * mi * wp.dot(r, r)))
+        wp.atomic_add(gradient, slot, wp.float64(wp.dot(bi, bi)))
+    b[i] = bi
+    f[i] = wp.vec3(0.0)
+    dx[i] = wp.vec3(0.0)
+
+
+@wp.kernel
+def pd_update_kernel(
+    x: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    x0: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    decay: float,
+    inv_dt: float,
+    final: int,
+):
+    """x += dx; on the last iteration also v = (x - x0)/dt * decay (free vertices)."""
+    i = wp.tid()
+    xi = x[i] + dx[i]
+    x[i] = xi
+    if final != 0 and inv_mass[i] > 0.0:
+        v[i] = (xi - x0[i]) * (inv_dt * decay)
+
+
+@wp.kernel
+def pd_matvec_kernel(
+    x: wp.array(dtype=wp.vec3),
+    diag: wp.array(dtype=float),
+    offsets: wp.array(dtype=wp.int32),
+    neighbors: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=float),
+    out: wp.array(dtype=wp.vec3),
+):
+    """out_i = (m_i/dt^2 + sum_j k_ij) x_i - sum_j k_ij x_j: the Laplacian row gathered (no atomics)."""
+    i = wp.tid()
+    acc = diag[i] * x[i]
+    for p in range(offsets[i], offsets[i + 1]):
+        acc = acc - weights[p] * x[neighbors[p]]
+    out[i] = acc
+
+
+@wp.kernel
+def pd_diag_kernel(diag: wp.array(dtype=float), blocks: wp.array(dtype=wp.mat33)):
+    i = wp.tid()
+    blocks[i] = diag[i] * wp.identity(n=3, dtype=float)
+
+
+@wp.kernel
+def pd_diag_invert_kernel(blocks: wp.array(dtype=wp.mat33), free: wp.array(dtype=float),
+                          dinv: wp.array(dtype=wp.mat33)):
+    i = wp.tid()
+    if free[i] > 0.0:
+        dinv[i] = wp.inverse(blocks[i])
+    else:
+        dinv[i] = wp.mat33(0.0)
+
+
+# ----------------------------------------------------------------------------------- operator
+class PDSystemOperator:
+    """The constant projective-dynamics matrix ``A = M/dt^2 + L (x) I_3 (+ extra terms)``.
+
+    Same interface as `linear.SpringSystemOperator` (``n``, ``device``, ``matvec``, ``diag_inv``,
+    ``free``), so the shared Jacobi / Chebyshev / CG solvers run on it, but the Laplacian is
+    applied in gather form: one thread per vertex walks its CSR row of spring neighbours with
+    scalar weights ``k_e`` (one launch, no atomics, no 3x3 blocks). ``extra`` terms (quadratic
+    bending) add ``matvec_add(x, out)`` and ``add_diagonal(diag)``. Pinned vertices
+    (``inv_mass == 0``) are eliminated through ``free`` and zero ``diag_inv`` blocks.
+
+    Args:
+        model: the `ClothModel`.
+        mass_scale: ``1/dt^2`` in 1/s^2.
+        extra: constant-Hessian force terms.
+    """
+
+    def __init__(self, model, mass_scale: float, extra=()):
+        self.model = model
+        self.n = n = model.num_vertices
+        self.device = d = model.device
+        self.extra = list(extra)
+        pairs = model.spring_pairs
+        k = model.spring_stiffness
+        rows = np.concatenate([pairs[:, 0], pairs[:, 1]])
+        cols = np.concatenate([pairs[:, 1], pairs[:, 0]])
+        w = np.concatenate([k, k])
+        order = np.argsort(rows, kind="stable")
+        counts = np.bincount(rows, minlength=n) if len(rows) else np.zeros(n, dtype=np.int64)
+        offsets = np.zeros(n + 1, dtype=np.int32)
+        offsets[1:] = np.cumsum(counts)
+        self.offsets = wp.array(offsets, dtype=wp.int32, device=d)
+        self.neighbors = wp.array(cols[order].astype(np.int32) if len(cols) else np.zeros(1, np.int32),
+                                  dtype=wp.int32, device=d)
+        self.weights = wp.array(w[order].astype(np.float32) if len(w) else np.zeros(1, np.float32),
+                                dtype=wp.float32, device=d)
+        self.laplacian_diag = np.bincount(rows, weights=w, minlength=n) if len(rows) else np.zeros(n)
+        self.diag = wp.zeros(n, dtype=wp.float32, device=d)
+        self.blocks = wp.zeros(n, dtype=wp.mat33, device=d)
+        self.diag_inv = wp.zeros(n, dtype=wp.mat33, device=d)
+        self.free = wp.array((model.inverse_masses > 0).astype(np.float32), dtype=wp.float32, device=d)
+        self.mass_scale = None
+        self.update(mass_scale)
+
+    def update(self, mass_scale: float):
+        """Rebuild the diagonal for a new ``1/dt^2`` (host work, once per ``dt``)."""
+        self.mass_scale = float(mass_scale)
+        self.diag.assign((self.mass_scale * self.model.masses + self.laplacian_diag).astype(np.float32))
+        wp.launch(pd_diag_kernel, self.n, [self.diag, self.blocks], device=self.device)
+        for t in self.extra:
+            t.add_diagonal(self.blocks)
+        wp.launch(pd_diag_invert_kernel, self.n, [self.blocks, self.free, self.diag_inv],
+                  device=self.device)
+
+    def matvec(self, x, out):
+        wp.launch(pd_matvec_kernel, self.n,
+                  [x, self.diag, self.offsets, self.neighbors, self.weights, out], device=self.device)
+        for t in self.extra:
+            t.matvec_add(x, out)
+
+    def dense_scalar(self) -> np.ndarray:
+        """The scalar (n x n) factor ``S`` of ``A = S (x) I_3`` in float64 (host; for ``direct``).
+
+        Springs and masses are assembled on the host; each extra term is probed with unit
+        vectors in the x component, and a `ValueError` is raised if it couples components
+        (then ``A`` is not of the form ``S (x) I_3``)."""
+        m = self.model
+        n = self.n
+        S = np.diag(self.mass_scale * m.masses + self.laplacian_diag)
+        pairs, k = m.spring_pairs, m.spring_stiffness
+        np.add.at(S, (pairs[:, 0], pairs[:, 1]), -k)
+        np.add.at(S, (pairs[:, 1], pairs[:, 0]), -k)
+        if self.extra:
+            e = wp.zeros(n, dtype=wp.vec3, device=self.device)
+            out = wp.zeros(n, dtype=wp.vec3, device=self.device)
+            h = np.zeros((n, 3), dtype=np.float32)
+            for c in range(n):
+                h[:] = 0.0
+                h[c, 0] = 1.0
+                e.assign(h)
+                out.zero_()
+                for t in self.extra:
+                    t.matvec_add(e, out)
+                col = out.numpy().astype(np.float64)
+                if np.abs(col[:, 1:]).max() > 1e-6 * max(np.abs(col[:, 0]).max(), 1e-30):
+                    raise ValueError("direct=True needs extra terms whose Hessian is Q (x) I_3; "
+                                     f"{type(self.extra[0]).__name__} couples x, y, z")
+                S[:, c] += col[:, 0]
+        return S
+
+
+def _is_constant_hessian(term) -> bool:
+    """Terms whose Hessian is constant enter the PD matrix (quadratic bending)."""
+    if getattr(term, "constant_hessian", False):
+        return True
+    return type(term).__name__ == "QuadraticBending" and hasattr(term, "matvec_add")
+
+
+# ----------------------------------------------------------------------------------- solver
+class ProjectiveDynamics(Solver):
+    """Projective dynamics (Liu et al. 2013; Bouaziz et al. 2014): ``solver.step(state, dt)``.
+
+    Args:
+        model: the `ClothModel`.
+        iterations: outer local/global iterations per step (>= 1).
+        linear: inner solver of the global step, ``"jacobi"``, ``"chebyshev"`` (Wang 2015) or
+            ``"cg"`` (block-Jacobi preconditioned), warm-started from the current iterate.
+        linear_iterations: inner iterations per global step (>= 1).
+        linear_tolerance: relative residual at which the inner solve stops early; ``None`` (the
+            default) runs exactly ``linear_iterations`` and reads nothing back (capturable).
+        alpha: Jacobi relaxation of the ``jacobi`` and ``chebyshev`` inner solvers, in (0, 2].
+        rho: Chebyshev's spectral radius of ``I - alpha D^-1 A`` in [0, 1); ``None`` measures it
+            with `linear.estimate_spectral_radius` when the matrix is built (first step, host)
+            and scales it by ``rho_safety``. Exposed as ``solver.rho`` after the first step.
+        rho_safety: factor (0, 1] applied to the measured spectral radius (an overestimate
+            diverges, an underestimate only accelerates less).
+        delay: plain Jacobi iterations before Chebyshev acceleration starts.
+        direct: solve the global step exactly with a dense inverse of the constant scalar matrix
+            precomputed on the host in float64 (meshes up to ``direct_max_vertices``); one host
+            round trip per iteration, so not capturable. ``linear`` is then unused.
+        direct_max_vertices: refuse ``direct`` above this many vertices (memory ~ 8 n^2 bytes).
+        corrections: limits / contact passes run after each step (`Solver.add_correction`).
+
+    Attributes:
+        default_substeps: 1 (one step per frame at 60 fps is stable on the default hanging
+            cloth; accuracy is set by ``iterations``).
+        stats: after a step (read lazily from the device): ``iterations``,
+            ``inner_iterations``, ``objective`` (F at the iterate where each outer iteration
+            starts, J), ``gradient_norm`` (``|grad F|`` there, N), ``linear_residual`` (last
+            inner solve, when measured), ``rho``.
+    """
+
+    name = "pd"
+    default_substeps = 1
+
+    def __init__(self, model, *, iterations: int = 10, linear: str = "chebyshev",
+                 linear_iterations: int = 20, linear_tolerance: float | None = None,
+                 alpha: float | None = None, rho: float | None = None, rho_safety: float = 0.99,
+                 delay: int = 2, direct: bool = False, direct_max_vertices: int = 4000,
+                 corrections=()):
+        super().__init__(model, corrections=corrections)
+        if isinstance(iterations, bool) or int(iterations) != iterations or iterations < 1:
+            raise ValueError(f"pd: iterations must be a positive integer, got {iterations!r}")
+        if linear not in LINEAR_SOLVERS:
+            raise ValueError(f"pd: linear must be one of {sorted(LINEAR_SOLVERS)}, got {linear!r}")
+        if (isinstance(linear_iterations, bool) or int(linear_iterations) != linear_iterations
+                or linear_iterations < 1):
+            raise ValueError(f"pd: linear_iterations must be a positive integer, got {linear_iterations!r}")
+        if linear_tolerance is not None and not (linear_tolerance > 0 and math.isfinite(linear_tolerance)):
+            raise ValueError(f"pd: linear_tolerance must be > 0 or None, got {linear_tolerance!r}")
+        if rho is not None and not (0.0 <= rho < 1.0):
+            raise ValueError(f"pd: rho must be in [0, 1) or None, got {rho!r}")
+        if not (0.0 < rho_safety <= 1.0):
+            raise ValueError(f"pd: rho_safety must be in (0, 1], got {rho_safety!r}")
+        if alpha is None:
+            alpha = 1.0
+        if not (0.0 < alpha <= 2.0):
+            raise ValueError(f"pd: alpha must be in (0, 2], got {alpha!r}")
+        if direct and model.num_vertices > direct_max_vertices:
+            raise ValueError(f"pd: direct=True is for small meshes: {model.num_vertices} vertices > "
+                             f"direct_max_vertices={direct_max_vertices}")
+        if model.spring_damping > 0:
+            import warnings
+
+            warnings.warn("pd: spring_damping (dashpots) is ignored by projective dynamics",
+                          stacklevel=2)
+        self.iterations = int(iterations)
+        self.linear_name = linear
+        self.linear_iterations = int(linear_iterations)
+        self.linear_tolerance = linear_tolerance
+        self.alpha = float(alpha)
+        self.rho = rho
+        self._rho_given = rho is not None
+        self.rho_safety = float(rho_safety)
+        self.delay = int(delay)
+        self.direct = bool(direct)
+        self.capturable = self.capturable and not self.direct and linear_tolerance is None
+
+        m, d = model, self.device
+        n = m.num_vertices
+        self.matrix_terms = [t for t in m.force_terms if _is_constant_hessian(t)]
+        self.explicit_terms = [t for t in m.force_terms
+                               if t not in self.matrix_terms and type(t).__name__ != "SpringForce"]
+        self.energy_terms = [t for t in m.force_terms if type(t).__name__ != "SpringForce"
+                             and hasattr(t, "energy") and type(t).__name__ != "WindForce"]
+        self.x0 = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.y = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.f = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.b = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.dx = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.d = wp.zeros(max(m.num_springs, 1), dtype=wp.vec3, device=d)
+        K = self.iterations
+        self._objective = wp.zeros(K, dtype=wp.float64, device=d)
+        self._gradient = wp.zeros(K, dtype=wp.float64, device=d)
+        self._energy32 = wp.zeros(K, dtype=wp.float32, device=d)
+        self._energy_views = [self._energy32[k:k + 1] for k in range(K)]
+        self.operator = None
+        self.linear = None
+        self._dt = None
+        self._Sinv = None
+        self._free_idx = np.flatnonzero(m.inverse_masses > 0)
+        self._last_info = None
+        self._stepped = False
+
+    # ------------------------------------------------------------------ set-up (host, per dt)
+    def _prepare(self, dt: float):
+        if self._dt == dt:
+            return
+        self._dt = dt
+        if self.operator is None:
+            self.operator = PDSystemOperator(self.model, 1.0 / (dt * dt), self.matrix_terms)
+        else:
+            self.operator.update(1.0 / (dt * dt))
+        if self.direct:
+            S = self.operator.dense_scalar()
+            f = self._free_idx
+            self._Sinv = np.linalg.inv(S[np.ix_(f, f)])
+            self._bhost = np.zeros((self.model.num_vertices, 3), dtype=np.float32)
+            return
+        opts = dict(iterations=self.linear_iterations, tolerance=self.linear_tolerance)
+        if self.linear_name in ("jacobi", "chebyshev"):
+            opts["alpha"] = self.alpha
+        if self.linear_name == "chebyshev":
+            if not self._rho_given:
+                est = estimate_spectral_radius(self.operator, self.alpha, iterations=200)
+                self.rho = min(self.rho_safety * est, 0.9999)
+            opts["rho"] = self.rho
+            opts["delay"] = self.delay
+        self.linear = make_linear_solver(self.linear_name, **opts)
+
+    def prepare(self, dt: float):
+        """Build the constant matrix (and Chebyshev's ``rho``, or the direct inverse) for ``dt``
+        now, so the first `step` does no set-up work. `step` calls it itself when ``dt`` changes."""
+        from .base import check_dt
+
+        self._prepare(check_dt(dt))
+        return self
+
+    # ------------------------------------------------------------------ the step
+    def _advance(self, state, dt):
+        self._prepare(dt)
+        m, d, A = self.model, self.device, self.operator
+        n = m.num_vertices
+        inv_dt2 = 1.0 / (dt * dt)
+        wp.launch(pd_predict_kernel, n,
+                  [state.x, state.v, m.inv_mass, wp.vec3(*m.gravity), dt, self.x0, self.y], device=d)
+        self._objective.zero_()
+        self._gradient.zero_()
+        if self.energy_terms:
+            self._energy32.zero_()
+        decay = math.exp(-m.damping * dt)
+        K = self.iterations
+        for k in range(K):
+            if m.num_springs:
+                wp.launch(pd_local_kernel, m.num_springs,
+                          [state.x, m.spring_indices, m.spring_rest_length, m.spring_k, self.d,
+                           self.f, self._objective, k], device=d)
+            for t in self.matrix_terms + self.explicit_terms:
+                t.eval(state.x, state.v, self.f, state.time)
+            for t in self.energy_terms:
+                t.energy(state.x, self._energy_views[k])
+            wp.launch(pd_rhs_kernel, n,
+                      [state.x, self.y, m.mass, A.free, inv_dt2, self.f, self.b, self.dx,
+                       self._objective, self._gradient, k], device=d)
+            if self.direct:
+                self._solve_direct()
+            else:
+                self._last_info = self.linear.solve(A, self.b, self.dx)
+            wp.launch(pd_update_kernel, n,
+                      [state.x, self.dx, self.x0, state.v, m.inv_mass, decay, 1.0 / dt,
+                       1 if k == K - 1 else 0], device=d)
+        self._stepped = True
+
+    def _solve_direct(self):
+        """Host decision by design: dx_f = S_ff^-1 b_f for the three components (float64)."""
+        f = self._free_idx
+        b = self.b.numpy()
+        self._bhost[f] = (self._Sinv @ b[f].astype(np.float64)).astype(np.float32)
+        self.dx.assign(self._bhost)
+
+    # ------------------------------------------------------------------ statistics
+    @property
+    def stats(self) -> dict:
+        if not getattr(self, "_stepped", False):
+            return {}
+        obj = self._objective.numpy().copy()
+        if self.energy_terms:
+            obj += self._energy32.numpy()
+        info = self._last_info or {}
+        inner = self.linear_iterations if not self.direct else 0
+        if info.get("iterations") is not None and self.linear_tolerance is not None:
+            inner = info["iterations"]  # of the last solve; the others are not recorded
+        return {
+            "iterations": self.iterations,
+            "inner_iterations": inner,
+            "linear": "direct" if self.direct else self.linear_name,
+            "objective": obj.tolist(),
+            "gradient_norm": np.sqrt(self._gradient.numpy()).tolist(),
+            "linear_residual": info.get("residual", float("nan")),
+            "rho": self.rho,
+        }
+
+    @stats.setter
+    def stats(self, value):  # the base class initialises it; the property reads the device
+        pass
+
+    def describe(self) -> str:
+        lin = "direct" if self.direct else f"{self.linear_name} x{self.linear_iterations}"
+        return f"pd ({self.iterations} iterations, {lin})"
