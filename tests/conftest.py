@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-wp.config.quiet = True
+from warp_cloth.util import quiet_warp
+
+quiet_warp()
 wp.init()
 wp.set_device("cpu")
 

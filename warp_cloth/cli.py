@@ -16,6 +16,8 @@ import json
 import os
 import sys
 
+from .util import quiet_warp
+
 SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh"]
 SOLVER_NAMES = ["explicit", "implicit", "pbd", "pd"]
 BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability"]
@@ -132,7 +134,7 @@ def cmd_run(args, parser) -> int:
     import warp as wp
 
     if args.quiet:
-        wp.config.quiet = True
+        quiet_warp()
     from .errors import SimulationDiverged
     from .scenes import build_scene
 
@@ -188,7 +190,7 @@ def cmd_info() -> int:
     from . import __version__
     from .solvers import available
 
-    wp.config.quiet = True
+    quiet_warp()
     wp.init()
     print(f"warp_cloth {__version__}")
     print(f"warp {wp.__version__}")

@@ -290,7 +290,7 @@ class TriMesh:
         """Write the mesh as a Wavefront OBJ file."""
         with open(path, "w", encoding="utf-8") as fh:
             for p in self.vertices:
-                fh.write(f"v {p[0]!r} {p[1]!r} {p[2]!r}\n")
+                fh.write(f"v {float(p[0])!r} {float(p[1])!r} {float(p[2])!r}\n")
             for t in self.triangles:
                 fh.write(f"f {t[0] + 1} {t[1] + 1} {t[2] + 1}\n")
 

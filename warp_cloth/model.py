@@ -119,7 +119,8 @@ class ClothModel:
         mesh: the cloth's `TriMesh` (rest shape = its vertices).
         density: areal density in kg/m^2 for lumped masses (ignored if ``masses`` is given).
         masses: optional (N,) vertex masses in kg (all > 0).
-        stretch_stiffness: N/m of the spring on every mesh edge.
+        stretch_stiffness: N/m of the spring on every mesh edge: one number, or one per edge in
+            the order of ``mesh.edges`` (anisotropic or graded materials).
         shear_stiffness: N/m of the extra cell diagonal springs (grid meshes only); 0 = none.
         bending: ``"none"``, ``"springs"`` (skip-one springs on a grid, across-edge springs on an
             unstructured mesh), ``"dihedral"`` (Bridson et al. 2003) or ``"quadratic"`` (Bergou et
@@ -201,14 +202,24 @@ class ClothModel:
         self.pin_path = pin_path
 
         # ---- springs
-        self.stretch_stiffness = _check_stiffness("stretch_stiffness", stretch_stiffness)
+        ks_edges = np.asarray(stretch_stiffness, dtype=np.float64)
+        if ks_edges.ndim == 0:
+            ks_edges = np.full(len(mesh.edges), _check_stiffness("stretch_stiffness", ks_edges))
+        elif ks_edges.shape != (len(mesh.edges),):
+            raise ValueError(f"stretch_stiffness has {ks_edges.size} entries, the mesh has "
+                             f"{len(mesh.edges)} edges")
+        bad = np.flatnonzero(~(np.isfinite(ks_edges) & (ks_edges >= 0)))
+        if len(bad):
+            raise ValueError(f"stretch_stiffness of edge {int(bad[0])} {tuple(mesh.edges[bad[0]])} "
+                             f"must be finite and >= 0, got {ks_edges[bad[0]]}")
+        self.stretch_stiffness = float(ks_edges.max()) if len(ks_edges) else 0.0
         self.shear_stiffness = _check_stiffness("shear_stiffness", shear_stiffness)
         self.bend_stiffness = _check_stiffness("bend_stiffness", bend_stiffness)
         self.spring_damping = _check_stiffness("spring_damping", spring_damping)
         if bending not in BENDING_MODELS:
             raise ValueError(f"bending must be one of {BENDING_MODELS}, got {bending!r}")
         self.bending = bending
-        pairs, ks, kinds = [mesh.edges], [np.full(len(mesh.edges), self.stretch_stiffness)], ["stretch"]
+        pairs, ks, kinds = [mesh.edges], [ks_edges], ["stretch"]
         if self.shear_stiffness > 0:
             sh = self._shear_pairs()
             pairs.append(sh), ks.append(np.full(len(sh), self.shear_stiffness)), kinds.append("shear")

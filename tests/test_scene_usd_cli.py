@@ -1,0 +1,137 @@
+"""End-to-end: scene runner, USD output (also of interrupted runs), CLI, wind."""
+
+import numpy as np
+import pytest
+from pxr import Usd, UsdGeom
+
+from warp_cloth import cli
+from warp_cloth.scenes import build_scene, flag, hanging
+from warp_cloth.usd import UsdWriter, read_points
+
+
+def check_stage(path, frames, fps):
+    stage = Usd.Stage.Open(str(path))
+    assert stage.GetTimeCodesPerSecond() == fps
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+    assert meshes
+    mesh = UsdGeom.Mesh(meshes[0])
+    samples = mesh.GetPointsAttr().GetTimeSamples()
+    assert len(samples) == frames and samples == list(range(frames))
+    assert stage.GetStartTimeCode() == 0 and stage.GetEndTimeCode() == frames - 1
+    pts = np.stack([np.asarray(mesh.GetPointsAttr().Get(t)) for t in samples])
+    assert np.all(np.isfinite(pts))
+    ext = np.asarray(mesh.GetExtentAttr().Get(samples[-1]))
+    assert np.allclose(ext, [pts[-1].min(0), pts[-1].max(0)])
+    assert len(mesh.GetFaceVertexCountsAttr().GetTimeSamples()) == 0  # topology written once
+    return pts
+
+
+def test_run_writes_stage_and_stats(tmp_usd):
+    scene = hanging(res=6, frames=12, fps=30, device="cpu")
+    stats = scene.run(tmp_usd)
+    pts = check_stage(tmp_usd, 12, 30)
+    assert stats.frames == 12 and stats.out == tmp_usd
+    assert np.allclose(pts[-1], scene.state.positions(), atol=1e-6)
+    assert pts[-1][:, 1].min() < pts[0][:, 1].min() - 0.05  # the cloth fell
+    assert 0 < stats.max_strain < 0.1 and stats.ms_per_substep > 0
+    assert stats.min_height == pytest.approx(pts[:, :, 1].min(), abs=1e-6)
+    assert "ms/substep" in stats.summary()
+
+
+@pytest.mark.parametrize("exc", [KeyboardInterrupt, RuntimeError])
+def test_interrupted_run_leaves_readable_file(tmp_usd, exc):
+    scene = hanging(res=6, frames=50, device="cpu")
+
+    def boom(frame, state):
+        if frame == 5:
+            raise exc("stop")
+
+    with pytest.raises(exc):
+        scene.run(tmp_usd, on_frame=boom)
+    check_stage(tmp_usd, 6, 60)
+
+
+def test_writer_refuses_nan_and_bad_paths(tmp_path):
+    w = UsdWriter(tmp_path / "a.usd", fps=10)
+    p = w.add_mesh("c", [[0, 1, 2]])
+    with pytest.raises(ValueError, match="non-finite point 1"):
+        w.write_frame(0, {p: [[0, 0, 0], [np.nan, 0, 0], [0, 1, 0]]})
+    w.close()
+    with pytest.raises(ValueError, match="must end in .usd"):
+        UsdWriter(tmp_path / "a.txt")
+    with pytest.raises(ValueError, match="directory does not exist"):
+        UsdWriter(tmp_path / "no" / "a.usd")
+
+
+def test_flag_flaps_in_wind(tmp_usd):
+    scene = flag(res=8, frames=90, device="cpu")
+    scene.run(tmp_usd)
+    _, pts, _ = read_points(tmp_usd)
+    tip = pts[30:, 8, :]  # free corner (i = nx, j = 0), after the start-up
+    assert tip[:, 0].mean() > 0.5 * 1.5  # blown downwind
+    assert tip[:, 2].std() > 0.02  # keeps moving across the wind: it flaps
+    assert np.all(np.isfinite(pts))
+
+
+def test_wind_force_directions():
+    import warp as wp
+
+    from warp_cloth import ClothModel, TriMesh
+    from warp_cloth.forces.wind import Wind
+
+    tri = TriMesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float), np.array([[0, 1, 2]]))
+    for vel, expect_zero in (((0, 0, 5.0), False), ((5.0, 0, 0), True)):
+        model = ClothModel(tri, wind=Wind(velocity=vel, gust_amplitude=0.0))
+        f = wp.zeros(3, dtype=wp.vec3)
+        x = wp.array(tri.vertices, dtype=wp.vec3)
+        model.force_terms[-1].eval(x, wp.zeros_like(x), f, model.state().time)
+        total = f.numpy().sum(0)
+        if expect_zero:  # edge-on: no drag, no lift
+            assert np.allclose(total, 0)
+        else:  # face-on: drag = 1/2 rho A C_D |u|^2 along the flow
+            assert np.allclose(total, [0, 0, 0.5 * 1.2 * 0.5 * 1.0 * 25], rtol=1e-5)
+    with pytest.raises(ValueError, match="velocity"):
+        Wind(velocity=(1, 2))
+
+
+def test_cli_run_and_info(tmp_path, capsys):
+    out = tmp_path / "h.usd"
+    rc = cli.main(["run", "hanging", "--res", "5", "--frames", "8", "--fps", "24", "--out", str(out), "--quiet"])
+    assert rc == 0
+    check_stage(out, 8, 24)
+    assert "max strain" in capsys.readouterr().out
+    assert cli.main(["info"]) == 0
+    assert "warp" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv,msg", [
+    (["run", "hanging", "--frames", "0"], "positive integer"),
+    (["run", "hanging", "--stiffness", "abc"], "expected a number"),
+    (["run", "hanging", "--solver", "rk4"], "invalid choice"),
+    (["run", "nowhere"], "invalid choice"),
+    (["run", "hanging", "--bogus"], "unrecognized arguments"),
+    (["run", "hanging", "--linear", "cg"], "--linear applies to"),
+    (["run", "hanging", "--strain-limit", "1.1,1.0"], "MIN <= MAX"),
+])
+def test_cli_usage_errors(argv, msg, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    assert e.value.code == 2
+    assert msg in capsys.readouterr().err
+
+
+def test_cli_divergence_exit_code(tmp_path, capsys):
+    out = tmp_path / "d.usd"
+    rc = cli.main(["run", "hanging", "--res", "6", "--stiffness", "1000000", "--substeps", "2",
+                   "--frames", "30", "--out", str(out), "--quiet"])
+    assert rc == 3
+    assert "diverged at frame" in capsys.readouterr().err
+    _, pts, _ = read_points(out)
+    assert np.all(np.isfinite(pts))
+
+
+def test_unknown_scene_name():
+    with pytest.raises(ValueError, match="unknown scene"):
+        build_scene("nowhere")
