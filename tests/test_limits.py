@@ -1,0 +1,190 @@
+"""Strain and area limiting (physics.md 2.10, T28-T30)."""
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warp_cloth import ClothModel, Scene, TriMesh
+from warp_cloth.diagnostics import edge_strains
+from warp_cloth.limits import AreaLimit, StrainLimit
+from warp_cloth.scenes import hanging_model
+from warp_cloth.solvers import make_solver
+from warp_cloth.solvers.pbd import PositionBased
+
+
+def state_at(model, x, v=None):
+    st = model.state()
+    st.x.assign(np.asarray(x, dtype=np.float32))
+    if v is not None:
+        st.v.assign(np.asarray(v, dtype=np.float32))
+    return st
+
+
+def perturbed(model, seed=0, scale=1.0, noise=0.01):
+    rng = np.random.default_rng(seed)
+    x = model.mesh.vertices * scale
+    free = model.inverse_masses > 0
+    x[free] += noise * rng.standard_normal((free.sum(), 3))
+    x[~free] = model.mesh.vertices[~free]
+    return x
+
+
+def one_triangle(pins=(), masses=(1.0, 2.0, 4.0)):
+    mesh = TriMesh(np.array([[0.0, 0, 0], [1.0, 0, 0], [0.2, 0, 0.9]]), np.array([[0, 1, 2]]))
+    return ClothModel(mesh, masses=list(masses), pins=list(pins))
+
+
+def area(x):
+    return 0.5 * np.linalg.norm(np.cross(x[1] - x[0], x[2] - x[0]))
+
+
+# ---------------------------------------------------------------------- T28
+@pytest.mark.parametrize("relaxation", [0.0, 0.2])
+def test_strain_limit_one_one_is_exactly_a_pbd_pass(relaxation):
+    model = hanging_model(res=8)
+    x0 = perturbed(model, scale=1.0, noise=0.02)
+    st = state_at(model, x0)
+    StrainLimit(model, 1.0, 1.0, iterations=5, relaxation=relaxation).apply(st, None, 0.01)
+    x = wp.array(x0.astype(np.float32), dtype=wp.vec3)
+    PositionBased(model, iterations=5, relaxation=relaxation).project(x)
+    np.testing.assert_array_equal(st.x.numpy(), x.numpy())
+
+
+def test_no_bounds_is_exactly_a_noop():
+    model = hanging_model(res=8)
+    x0 = perturbed(model, noise=0.005)
+    v0 = np.random.default_rng(1).standard_normal(x0.shape)
+    st = state_at(model, x0, v0)
+    xa, va = st.x.numpy().copy(), st.v.numpy().copy()
+    StrainLimit(model, 0.0, math.inf).apply(st, None, 0.01)
+    AreaLimit(model, 0.0, math.inf).apply(st, None, 0.01)
+    np.testing.assert_array_equal(st.x.numpy(), xa)
+    np.testing.assert_array_equal(st.v.numpy(), va)
+    # bounds that nothing violates run the kernels and change nothing either
+    StrainLimit(model, 0.5, 2.0).apply(st, None, 0.01)
+    AreaLimit(model, 0.2, 5.0).apply(st, None, 0.01)
+    np.testing.assert_array_equal(st.x.numpy(), xa)
+    np.testing.assert_array_equal(st.v.numpy(), va)
+
+
+# ---------------------------------------------------------------------- T29
+def test_strain_limit_brings_every_edge_into_bounds():
+    model = hanging_model(res=10)
+    rng = np.random.default_rng(3)
+    x0 = model.mesh.vertices * np.array([1.3, 1.0, 0.8]) + 0.01 * rng.standard_normal((121, 3))
+    x0[model.pins] = model.mesh.vertices[model.pins]
+    before = edge_strains(model, x0) + 1.0
+    assert before.max() > 1.2 and before.min() < 0.85
+
+    def violation(its):
+        st = state_at(model, x0)
+        StrainLimit(model, 0.95, 1.05, iterations=its).apply(st, None, 0.01)
+        r = edge_strains(model, st.x.numpy()) + 1.0
+        return max(0.95 - r.min(), r.max() - 1.05, 0.0), st
+
+    v = [violation(its)[0] for its in (10, 100, 300)]
+    assert v[0] > v[1] > v[2]
+    viol, st = violation(1000)  # a large global deformation: Jacobi needs many iterations
+    assert viol < 2e-3
+    np.testing.assert_array_equal(st.x.numpy()[model.pins], x0[model.pins].astype(np.float32))
+
+
+def test_strain_limit_is_mass_weighted_and_corrects_velocity():
+    model = one_triangle(masses=(1.0, 3.0, 2.0))
+    x0 = model.mesh.vertices.copy()
+    x0[1] = [1.5, 0.0, 0.0]  # edge (0, 1) at ratio 1.5, edge (1, 2) at 1.31, (0, 2) at 1
+    st = state_at(model, x0)
+    lim = StrainLimit(model, 0.0, 1.35, iterations=1)
+    lim.apply(st, None, 0.5)
+    x, v = st.x.numpy().astype(np.float64), st.v.numpy().astype(np.float64)
+    assert np.linalg.norm(x[1] - x[0]) == pytest.approx(1.35, abs=1e-6)  # a lone edge: exact
+    np.testing.assert_array_equal(x[2], x0[2].astype(np.float32))  # its edges were inside
+    np.testing.assert_allclose(x[0] + 3 * x[1], x0[0] + 3 * x0[1], atol=1e-5)  # mass centre
+    np.testing.assert_allclose(v, (x - x0) / 0.5, atol=1e-5)  # v += dx/dt
+    # a pinned end stays: only the other moves
+    m2 = one_triangle(pins=[1])
+    st2 = state_at(m2, x0)
+    StrainLimit(m2, 0.0, 1.35, iterations=1).apply(st2, None, 0.5)
+    x2 = st2.x.numpy()
+    np.testing.assert_array_equal(x2[1], x0[1].astype(np.float32))
+    np.testing.assert_allclose(x2[0], [0.15, 0.0, 0.0], atol=1e-6)
+
+
+# ---------------------------------------------------------------------- T30
+@pytest.mark.parametrize("scale,expect", [(1.8, 2.0), (0.3, 0.5)])
+def test_area_limit_hits_clamped_area_and_keeps_centroid(scale, expect):
+    model = one_triangle()
+    rest = area(model.mesh.vertices)
+    m = model.masses
+    x0 = model.mesh.vertices * [scale, 1.0, scale] + [0.3, 0.1, -0.2]
+    st = state_at(model, x0)
+    AreaLimit(model, 0.5, 2.0, iterations=1).apply(st, None, 0.1)
+    x = st.x.numpy().astype(np.float64)
+    assert area(x) == pytest.approx(expect * rest, rel=1e-5)
+    c0 = (m[:, None] * x0).sum(0) / m.sum()
+    np.testing.assert_allclose((m[:, None] * x).sum(0) / m.sum(), c0, atol=1e-6)
+    # similar triangle: a scaling, not a shear
+    e0, e = x0[1] - x0[0], x[1] - x[0]
+    assert np.linalg.norm(np.cross(e0, e)) < 1e-5
+    np.testing.assert_allclose(st.v.numpy(), (x - x0) / 0.1, atol=1e-4)
+
+
+def test_area_limit_with_a_pin_scales_about_it():
+    model = one_triangle(pins=[2])
+    rest = area(model.mesh.vertices)
+    x0 = model.mesh.vertices * 2.0
+    x0[2] = model.mesh.vertices[2]
+    st = state_at(model, x0)
+    AreaLimit(model, 0.5, 1.5, iterations=1).apply(st, None, 0.1)
+    x = st.x.numpy()
+    np.testing.assert_array_equal(x[2], x0[2].astype(np.float32))
+    assert area(x.astype(np.float64)) == pytest.approx(1.5 * rest, rel=1e-5)
+
+
+def test_area_limit_on_a_grid_converges():
+    model = hanging_model(res=6)
+    rng = np.random.default_rng(2)
+    x0 = model.mesh.vertices * np.array([1.5, 1.0, 1.3]) + 0.005 * rng.standard_normal((49, 3))
+    x0[model.pins] = model.mesh.vertices[model.pins]
+    st = state_at(model, x0)
+    AreaLimit(model, 0.9, 1.1, iterations=300).apply(st, None, 0.01)
+    ratio = model.mesh.triangle_areas(st.x.numpy()) / model.mesh.triangle_areas()
+    assert ratio.min() > 0.9 - 5e-3 and ratio.max() < 1.1 + 5e-3
+
+
+# ---------------------------------------------------------------------- use after any solver
+def test_strain_limit_after_explicit_solver_keeps_soft_cloth_stiff():
+    def run(corr):
+        model = hanging_model(res=8, stiffness=30.0)
+        solver = make_solver("explicit", model, corrections=corr(model))
+        stats = Scene(model, solver, frames=30).run(None, quiet=True, energy=False)
+        return stats
+
+    free = run(lambda m: [])
+    lim = run(lambda m: [StrainLimit(m, 0.0, 1.01, iterations=20)])
+    assert free.max_strain > 0.1
+    assert lim.captured and lim.final_max_strain < 0.02 < free.final_max_strain
+
+
+def test_bad_arguments_raise():
+    model = hanging_model(res=4)
+    for args, kw in (((1.2, 1.1), {}), ((-0.1, 1.1), {}), ((math.nan, 1.0), {}),
+                     ((0.9, math.nan), {}), ((0.9, 1.1), dict(iterations=0)),
+                     ((0.9, 1.1), dict(relaxation=-1.0)), ((0.0, 0.0), {}), (("a", 1.0), {})):
+        with pytest.raises(ValueError):
+            StrainLimit(model, *args, **kw)
+        with pytest.raises(ValueError):
+            AreaLimit(model, *args, **kw)
+    assert StrainLimit(model, 0.9, math.inf).sigma_max == math.inf
+    assert StrainLimit(model, 0.9, 1.1).capturable and AreaLimit(model, 0.9, 1.1).capturable
+
+
+def test_cli_limits_end_to_end(tmp_usd):
+    from warp_cloth.cli import main
+
+    for solver in ("explicit", "pbd"):
+        assert main(["run", "hanging", "--solver", solver, "--strain-limit", "0.9,1.01",
+                     "--area-limit", "0.8,1.2", "--res", "6", "--frames", "3", "--quiet",
+                     "--out", tmp_usd]) == 0

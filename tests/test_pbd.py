@@ -1,0 +1,339 @@
+"""Position-based dynamics (physics.md 2.9, T23-T27, T31): exact small cases and properties."""
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warp_cloth import ClothModel, PinPath, Scene, TriMesh
+from warp_cloth.diagnostics import edge_strains
+from warp_cloth.scenes import hanging_model
+from warp_cloth.solvers import make_solver
+from warp_cloth.solvers.pbd import PositionBased, color_constraints
+
+
+def one_triangle_model(pins=(), masses=(1.0, 3.0, 0.5), **kw):
+    mesh = TriMesh(np.array([[0.0, 0, 0], [1.0, 0, 0], [0.0, 0, 1.0]]), np.array([[0, 1, 2]]))
+    return ClothModel(mesh, masses=list(masses), pins=list(pins), **kw)
+
+
+def keep_springs(model, idx):
+    """Restrict the model's springs (host arrays the solver reads) to ``idx`` (test hack)."""
+    idx = np.asarray(idx, dtype=np.int64)
+    model.spring_pairs = model.spring_pairs[idx]
+    model.spring_rest = model.spring_rest[idx]
+    model.spring_stiffness = model.spring_stiffness[idx]
+    model.num_springs = len(idx)
+    return model
+
+
+def arr(x):
+    return wp.array(np.asarray(x, dtype=np.float32), dtype=wp.vec3, device="cpu")
+
+
+def corners_model(n=10, damping=4.0):
+    mesh = TriMesh.grid(n, n, size=1.0, plane="xz", origin=(-0.5, 1.0, -0.5))
+    return ClothModel(mesh, pins=[0, n, n * (n + 1), (n + 1) ** 2 - 1], damping=damping)
+
+
+def perturbed(model, seed=0, drop=0.01, noise=0.01):
+    """Rest positions with the free vertices dropped and jittered (a PBD prediction)."""
+    rng = np.random.default_rng(seed)
+    x = model.mesh.vertices.copy()
+    free = model.inverse_masses > 0
+    x[free, 1] -= drop * rng.random(free.sum())
+    x[free] += noise * rng.standard_normal((free.sum(), 3))
+    return x
+
+
+# ---------------------------------------------------------------------- T23: single edge
+@pytest.mark.parametrize("gs", [False, True])
+def test_single_edge_projection_exact_and_keeps_mass_centre(gs):
+    model = keep_springs(one_triangle_model(), [0])  # edge (0, 1), masses 1 and 3
+    solver = PositionBased(model, iterations=1, gauss_seidel=gs, relaxation=0.0)
+    x0 = np.array([[-0.3, 0.2, 0.1], [1.4, -0.5, 0.3], [0.0, 0.0, 1.0]])
+    x = arr(x0)
+    solver.project(x)
+    xn = x.numpy().astype(np.float64)
+    assert np.linalg.norm(xn[0] - xn[1]) == pytest.approx(1.0, abs=1e-6)
+    c0 = (1.0 * x0[0] + 3.0 * x0[1]) / 4.0
+    c1 = (1.0 * xn[0] + 3.0 * xn[1]) / 4.0
+    np.testing.assert_allclose(c1, c0, atol=1e-6)
+    # moves along the edge, the light vertex 3x as far as the heavy one
+    d0 = x0[0] - x0[1]
+    for k in (0, 1):
+        mv = xn[k] - x0[k]
+        assert np.linalg.norm(np.cross(mv, d0)) < 1e-5
+    assert np.linalg.norm(xn[0] - x0[0]) == pytest.approx(3 * np.linalg.norm(xn[1] - x0[1]), rel=1e-4)
+    np.testing.assert_array_equal(xn[2], x0[2])  # not in any constraint
+
+
+def test_single_edge_with_pinned_end_moves_only_the_other():
+    model = keep_springs(one_triangle_model(pins=[0]), [0])
+    solver = PositionBased(model, iterations=1, relaxation=0.0)
+    x0 = np.array([[0.0, 0.0, 0.0], [0.0, -2.5, 0.0], [0.0, 0.0, 1.0]])
+    x = arr(x0)
+    solver.project(x)
+    xn = x.numpy()
+    np.testing.assert_array_equal(xn[0], x0[0])
+    np.testing.assert_allclose(xn[1], [0.0, -1.0, 0.0], atol=1e-6)
+
+
+def test_pins_never_move_in_a_step_and_scripted_pins_follow():
+    model = hanging_model(res=6, damping=0.0)
+    solver = PositionBased(model, iterations=5)
+    state = model.state()
+    x_pins = state.positions()[model.pins]
+    for _ in range(20):
+        solver.step(state, 1.0 / 240)
+    np.testing.assert_array_equal(state.positions()[model.pins], x_pins)
+    assert np.all(state.velocities()[model.pins] == 0.0)
+
+    mesh = model.mesh
+    p0 = mesh.vertices[[0, 6]]
+    path = PinPath([0.0, 1.0], np.stack([p0, p0 + [0.0, 0.5, 0.0]]))
+    model2 = ClothModel(mesh, pins=[0, 6], pin_path=path)
+    s2 = PositionBased(model2, iterations=5)
+    st = model2.state()
+    for _ in range(10):
+        s2.step(st, 0.01)
+    np.testing.assert_allclose(st.positions()[[0, 6]], p0 + [0.0, 0.05, 0.0], atol=1e-5)
+    np.testing.assert_allclose(st.velocities()[[0, 6]], [[0.0, 0.5, 0.0]] * 2, atol=1e-3)
+
+
+# ---------------------------------------------------------------------- T24: more iterations
+@pytest.mark.parametrize("gs", [False, True])
+def test_more_iterations_monotonically_smaller_violation(gs):
+    model = hanging_model(res=12)
+    x_start = perturbed(model, drop=0.05)
+    solver = PositionBased(model, gauss_seidel=gs)
+    viol = []
+    for its in (1, 2, 4, 8, 16, 32, 64):
+        x = arr(x_start)
+        solver.project(x, iterations=its)
+        viol.append(np.abs(edge_strains(model, x.numpy())).max())
+    assert all(b < a for a, b in zip(viol, viol[1:])), viol
+    assert viol[-1] < 0.2 * viol[0]
+
+
+def test_gauss_seidel_converges_faster_than_jacobi():
+    model = hanging_model(res=12)
+    x_start = perturbed(model, drop=0.05)
+    out = {}
+    for gs in (False, True):
+        x = arr(x_start)
+        PositionBased(model, gauss_seidel=gs).project(x, iterations=16)
+        out[gs] = np.abs(edge_strains(model, x.numpy())).max()
+    assert out[True] < out[False]
+
+
+# ---------------------------------------------------------------------- T26: order independence
+def test_jacobi_does_not_depend_on_edge_order():
+    model = hanging_model(res=8)
+    x_start = perturbed(model)
+    ref = arr(x_start)
+    PositionBased(model, iterations=7).project(ref)
+
+    model2 = hanging_model(res=8)
+    rng = np.random.default_rng(5)
+    perm = rng.permutation(model2.num_springs)
+    keep_springs(model2, perm)
+    flip = rng.random(model2.num_springs) < 0.5
+    model2.spring_pairs[flip] = model2.spring_pairs[flip][:, ::-1]
+    x = arr(x_start)
+    PositionBased(model2, iterations=7).project(x)
+    np.testing.assert_allclose(x.numpy(), ref.numpy(), atol=2e-6)
+    # ... whereas Gauss-Seidel order matters (T25)
+    a, b = arr(x_start), arr(x_start)
+    PositionBased(model, iterations=1, gauss_seidel=True).project(a)
+    PositionBased(model2, iterations=1, gauss_seidel=True).project(b)
+    assert np.abs(a.numpy() - b.numpy()).max() > 1e-4
+
+
+# ---------------------------------------------------------------------- coloured Gauss-Seidel
+def test_coloring_is_valid_and_small():
+    model = hanging_model(res=8)
+    pairs = model.spring_pairs
+    colors = color_constraints(pairs, model.num_vertices)
+    for c in range(colors.max() + 1):
+        v = pairs[colors == c].reshape(-1)
+        assert len(np.unique(v)) == len(v), f"colour {c} shares a vertex"
+    assert colors.max() + 1 <= 8
+
+
+def test_colored_gauss_seidel_equals_sequential_in_color_order():
+    model = hanging_model(res=8)
+    x_start = perturbed(model, drop=0.05)
+    solver = PositionBased(model, iterations=3, gauss_seidel=True)
+    x = arr(x_start)
+    solver.project(x)
+
+    # sequential Gauss-Seidel in the solver's (colour) order, on the host in float64
+    pairs = solver.constraint_pairs
+    rest = np.linalg.norm(model.mesh.vertices[pairs[:, 0]] - model.mesh.vertices[pairs[:, 1]], axis=1)
+    w = model.inverse_masses
+    xr = x_start.astype(np.float32).astype(np.float64)
+    for _ in range(3):
+        for (i, j), L in zip(pairs, rest):
+            d = xr[i] - xr[j]
+            l = np.linalg.norm(d)
+            g = (L - l) / ((w[i] + w[j]) * l) * d
+            xr[i] += w[i] * g
+            xr[j] -= w[j] * g
+    np.testing.assert_allclose(x.numpy(), xr, atol=2e-5)
+
+
+# ---------------------------------------------------------------------- compliance (XPBD)
+def _corner_sag(iterations, compliance, gauss_seidel):
+    model = corners_model()
+    solver = PositionBased(model, iterations=iterations, compliance=compliance,
+                           gauss_seidel=gauss_seidel)
+    scene = Scene(model, solver, substeps=4, frames=90)
+    scene.run(None, quiet=True, energy=False)
+    return 1.0 - scene.state.positions()[:, 1].min()  # centre drop of a sheet held at 4 corners
+
+
+@pytest.mark.parametrize("gs,its", [(True, 10), (False, 40)])
+def test_compliance_makes_sag_independent_of_iterations(gs, its):
+    a, b = _corner_sag(its, 0.03, gs), _corner_sag(2 * its, 0.03, gs)
+    assert abs(b - a) / a < 0.05, (a, b)
+    p, q = _corner_sag(its, None, gs), _corner_sag(2 * its, None, gs)
+    assert abs(q - p) / p > 0.05, (p, q)  # plain PBD: stiffer with more iterations (T27)
+    assert q < p
+
+
+def test_xpbd_single_spring_equilibrium_is_the_spring_law():
+    # vertex 1 (mass 3 kg) hangs straight below pinned vertex 0 on one constraint of
+    # compliance a: at rest the stretch is m g a, whatever dt (the point of XPBD). The damping
+    # factor exp(-c dt) multiplies the gravity increment of the prediction, hence in the law.
+    a, m, g, c = 0.002, 3.0, 9.81, 5.0
+    mesh = TriMesh(np.array([[0.0, 0, 0], [0.0, -1.0, 0], [0.0, 0, 1.0]]), np.array([[0, 1, 2]]))
+    for dt in (1.0 / 60, 1.0 / 600):
+        model = keep_springs(ClothModel(mesh, masses=[1.0, m, 1.0], pins=[0, 2], damping=c), [0])
+        solver = PositionBased(model, iterations=2, compliance=a)
+        state = model.state()
+        for _ in range(int(round(4.0 / dt))):
+            solver.step(state, dt)
+        x = state.positions()
+        assert abs(x[1, 0]) < 1e-6 and abs(x[1, 2]) < 1e-6
+        assert -x[1, 1] - 1.0 == pytest.approx(m * g * a * math.exp(-c * dt), rel=1e-3)
+    # compliance 0 is plain PBD: the same projection
+    m0 = one_triangle_model()
+    x_start = np.array([[0.1, 0.3, -0.2], [1.3, 0.0, 0.1], [0.0, -0.2, 1.4]])
+    p, q = arr(x_start), arr(x_start)
+    PositionBased(m0, iterations=3).project(p)
+    PositionBased(m0, iterations=3, compliance=0.0).project(q)
+    np.testing.assert_allclose(p.numpy(), q.numpy(), atol=1e-6)
+
+
+def test_bending_constraints_across_edges():
+    model = hanging_model(res=6)
+    n_bend = len(model.mesh.bend_quads)
+    s = PositionBased(model, bending_compliance=0.0, gauss_seidel=True, iterations=60)
+    assert s.num_constraints == model.num_springs + n_bend
+    x_start = perturbed(model, drop=0.0, noise=0.02)
+    x = arr(x_start)
+    s.project(x)
+    xn = x.numpy().astype(np.float64)
+    bp = model.mesh.bend_quads[:, 2:4]
+    x0 = model.mesh.vertices
+    L = np.linalg.norm(x0[bp[:, 0]] - x0[bp[:, 1]], axis=1)
+    before = np.abs(np.linalg.norm(x_start[bp[:, 0]] - x_start[bp[:, 1]], axis=1) / L - 1).max()
+    after = np.abs(np.linalg.norm(xn[bp[:, 0]] - xn[bp[:, 1]], axis=1) / L - 1).max()
+    assert after < 0.1 * before
+
+
+# ---------------------------------------------------------------------- step, velocities, contact
+def test_step_velocity_matches_position_change_and_falls_under_gravity():
+    model = hanging_model(res=6, damping=0.0)
+    solver = PositionBased(model, iterations=4)
+    state = model.state()
+    dt = 1.0 / 240
+    solver.step(state, dt)
+    x1 = state.positions()
+    solver.step(state, dt)
+    x2, v2 = state.positions(), state.velocities()
+    free = model.inverse_masses > 0
+    np.testing.assert_allclose(v2[free], (x2[free] - x1[free]) / dt, atol=2e-3)
+    assert x2[free, 1].mean() < x1[free, 1].mean() < 1.0  # falling
+    # without constraints it is exact free fall: y = y0 - g t^2 (1+...)/2 in symplectic form
+    free_model = keep_springs(one_triangle_model(damping=0.0), [])
+    st = free_model.state()
+    s = PositionBased(free_model)
+    for _ in range(10):
+        s.step(st, 0.01)
+    np.testing.assert_allclose(st.velocities()[:, 1], -9.81 * 0.1, rtol=1e-5)
+    np.testing.assert_allclose(st.positions()[:, 1], -9.81 * 0.01 * 0.01 * 55, rtol=1e-4)
+
+
+class FakeFloor:
+    """A contact correction: project_positions inside the iterations, apply after the step."""
+
+    capturable = False
+
+    def __init__(self, height):
+        self.height = height
+        self.projected = 0
+        self.applied = 0
+
+    def project_positions(self, x, x_start, dt):
+        self.projected += 1
+        assert x_start is not None
+        h = x.numpy()
+        h[:, 1] = np.maximum(h[:, 1], self.height)
+        x.assign(h)
+
+    def apply(self, state, x_start, dt):
+        self.applied += 1
+
+
+@pytest.mark.parametrize("gs", [False, True])
+def test_contact_hook_runs_inside_every_iteration(gs):
+    model = hanging_model(res=6)
+    floor = FakeFloor(0.8)
+    solver = PositionBased(model, iterations=3, gauss_seidel=gs, corrections=[floor])
+    assert not solver.capturable
+    state = model.state()
+    for _ in range(30):
+        solver.step(state, 1.0 / 120)
+    assert floor.projected == 90 and floor.applied == 30
+    x, v = state.positions(), state.velocities()
+    assert x[:, 1].min() >= 0.8 - 1e-6
+    assert x[:, 1].min() < 0.8 + 1e-3  # it did reach the floor
+    # resting on the floor: velocities follow the projected positions (no downward speed left)
+    on_floor = x[:, 1] < 0.8 + 1e-6
+    assert np.all(v[on_floor, 1] > -0.05)
+
+
+def test_scene_runs_captured_and_stays_plausible():
+    model = hanging_model(res=8)
+    solver = make_solver("pbd", model)
+    assert solver.capturable and solver.default_substeps == 64
+    stats = Scene(model, solver, frames=5).run(None, quiet=True)
+    assert stats.captured and stats.substeps == 64
+    assert stats.max_strain < 0.05
+
+
+def test_bad_options_raise():
+    model = hanging_model(res=4)
+    for kw in (dict(iterations=0), dict(iterations=2.5), dict(compliance=-1.0),
+               dict(compliance="soft"), dict(relaxation=-0.1), dict(relaxation=math.nan),
+               dict(bending_compliance=math.inf)):
+        with pytest.raises(ValueError):
+            PositionBased(model, **kw)
+    with pytest.raises(ValueError):
+        make_solver("pbd", model, iteration=3)
+    with pytest.raises(ValueError):
+        PositionBased(model).step(model.state(), 0.0)
+
+
+def test_cli_runs_pbd(tmp_usd):
+    from warp_cloth.cli import main
+
+    assert main(["run", "hanging", "--solver", "pbd", "--iterations", "4", "--gauss-seidel",
+                 "--compliance", "0.001", "--res", "6", "--frames", "3", "--substeps", "8",
+                 "--quiet", "--out", tmp_usd]) == 0
+    import os
+
+    assert os.path.getsize(tmp_usd) > 0

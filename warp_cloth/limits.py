@@ -1,0 +1,325 @@
+"""Strain and area limiting: position corrections run after any solver (``physics.md`` 2.10).
+
+Strain limiting (notes L1376-1439) uses projection only as a correction pass with loose bounds:
+the method (explicit, implicit, position-based, projective) advances the cloth, then these
+passes move only the elements that violate their bounds.
+
+- `StrainLimit`: every mesh edge's stretch ratio ``sigma = |x_i - x_j| / L`` is clamped to
+  ``[sigma_min, sigma_max]`` by the mass-weighted projection of the notes (L1386-1408, with the
+  weight fix of physics.md 2.10):
+
+      sigma0 = clamp(sigma, sigma_min, sigma_max)
+      x_i <- x_i - w_i/(w_i + w_j) (|x_ij| - sigma0 L) x_ij/|x_ij|
+      x_j <- x_j + w_j/(w_i + w_j) (|x_ij| - sigma0 L) x_ij/|x_ij|
+
+  (``w = 1/m``, 0 for pinned vertices, so a pinned end never moves). PBD's stretch projection is
+  the case ``sigma_min = sigma_max = 1``; ``sigma_min = 0, sigma_max = inf`` changes nothing
+  (L1405-1407).
+- `AreaLimit`: every triangle's area ``A`` is clamped to ``[a_min A0, a_max A0]`` (``A0`` its rest
+  area) by scaling it about its mass-weighted centroid ``c`` by ``s = sqrt(clamp(A)/A)``
+  (L1410-1429, with the sqrt fix of physics.md 2.10). A triangle with one pinned vertex scales
+  about that vertex (its mass is infinite); one with two or three pinned vertices is skipped
+  (it cannot scale without moving a pin).
+
+Both run Jacobi iterations in the GPU style: one thread per element computes its correction and
+``atomic_add``s it, with a count of 1, into per-vertex accumulators; one thread per vertex then
+applies the average ``x_i <- x_i + sum(dx) / (n_i + alpha)`` over the ``n_i`` *active* elements at
+the vertex (those on or outside a bound), which is the notes' Jacobi blend
+``(x_acc + alpha x) / (n + alpha)`` written with deltas (L1310-1318). ``alpha`` (``relaxation``)
+defaults to 0 here: a lone violated element is then corrected fully in one iteration.
+
+Velocities are corrected consistently with the positions: every position change ``dx`` adds
+``dx / dt`` to the velocity (the position-based velocity update of the notes, L1344), so the
+pass removes exactly the velocity that produced the violation and the next step does not undo it.
+
+Limitations: Jacobi averaging converges slowly along long chains of violated edges (a pinned
+corner holding a whole sheet needs tens of iterations); the bounds are met exactly only in the
+limit of iterations. On a GPU the float atomics sum in an arbitrary order, so results can differ
+in the last bits from run to run (on the CPU they are deterministic).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+__all__ = ["StrainLimit", "AreaLimit", "edge_projection"]
+
+
+@wp.func
+def edge_projection(xi: wp.vec3, xj: wp.vec3, wi: float, wj: float, target: float):
+    """The notes' single-edge projection to length ``target`` (L1275-1295), as a direction.
+
+    Returns ``g`` such that ``x_i += w_i g`` and ``x_j -= w_j g`` give ``|x_i - x_j| = target``
+    exactly (to rounding) and keep the mass-weighted centre. Zero for a degenerate edge or two
+    pinned ends. Shared with the position-based solver, so that a ``[1, 1]`` strain limit is
+    bit-for-bit a PBD pass.
+    """
+    d = xi - xj
+    l = wp.length(d)
+    wsum = wi + wj
+    if l < 1.0e-12 or wsum <= 0.0:
+        return wp.vec3(0.0)
+    return (target - l) / (wsum * l) * d
+
+
+@wp.kernel
+def strain_limit_kernel(
+    x: wp.array(dtype=wp.vec3),
+    edges: wp.array2d(dtype=wp.int32),
+    rest: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    sigma_min: float,
+    sigma_max: float,
+    delta: wp.array(dtype=wp.vec3),
+    count: wp.array(dtype=float),
+):
+    e = wp.tid()
+    i = edges[e, 0]
+    j = edges[e, 1]
+    wi = inv_mass[i]
+    wj = inv_mass[j]
+    if wi + wj <= 0.0:
+        return
+    L = rest[e]
+    s = wp.length(x[i] - x[j]) / L
+    if s > sigma_min and s < sigma_max:
+        return  # inside the bounds: inactive, not counted
+    s0 = wp.min(wp.max(s, sigma_min), sigma_max)
+    g = edge_projection(x[i], x[j], wi, wj, s0 * L)
+    wp.atomic_add(delta, i, wi * g)
+    wp.atomic_sub(delta, j, wj * g)
+    wp.atomic_add(count, i, 1.0)
+    wp.atomic_add(count, j, 1.0)
+
+
+@wp.kernel
+def area_limit_kernel(
+    x: wp.array(dtype=wp.vec3),
+    tris: wp.array2d(dtype=wp.int32),
+    rest_area: wp.array(dtype=float),
+    mass: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    a_min: float,
+    a_max: float,
+    delta: wp.array(dtype=wp.vec3),
+    count: wp.array(dtype=float),
+):
+    t = wp.tid()
+    i = tris[t, 0]
+    j = tris[t, 1]
+    k = tris[t, 2]
+    xi = x[i]
+    xj = x[j]
+    xk = x[k]
+    area = 0.5 * wp.length(wp.cross(xj - xi, xk - xi))
+    A0 = rest_area[t]
+    lo = a_min * A0
+    hi = a_max * A0
+    if area > lo and area < hi:
+        return
+    if area < 1.0e-20:
+        return  # degenerate: no direction to scale along
+    # mass-weighted centroid; a pinned vertex has infinite mass
+    npin = int(0)
+    c = wp.vec3(0.0)
+    if inv_mass[i] <= 0.0:
+        npin += 1
+        c = xi
+    if inv_mass[j] <= 0.0:
+        npin += 1
+        c = xj
+    if inv_mass[k] <= 0.0:
+        npin += 1
+        c = xk
+    if npin > 1:
+        return
+    if npin == 0:
+        mi = mass[i]
+        mj = mass[j]
+        mk = mass[k]
+        c = (mi * xi + mj * xj + mk * xk) / (mi + mj + mk)
+    s = wp.sqrt(wp.min(wp.max(area, lo), hi) / area) - 1.0
+    wp.atomic_add(delta, i, s * (xi - c))
+    wp.atomic_add(delta, j, s * (xj - c))
+    wp.atomic_add(delta, k, s * (xk - c))
+    wp.atomic_add(count, i, 1.0)
+    wp.atomic_add(count, j, 1.0)
+    wp.atomic_add(count, k, 1.0)
+
+
+@wp.kernel
+def limit_apply_kernel(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    delta: wp.array(dtype=wp.vec3),
+    count: wp.array(dtype=float),
+    alpha: float,
+    inv_dt: float,
+):
+    """Jacobi blend of the active elements' corrections; ``v += dx / dt``; clear accumulators."""
+    i = wp.tid()
+    c = count[i]
+    if c > 0.0:
+        dx = delta[i] / (c + alpha)
+        x[i] = x[i] + dx
+        v[i] = v[i] + dx * inv_dt
+    delta[i] = wp.vec3(0.0)
+    count[i] = 0.0
+
+
+def _check_iterations(name, iterations) -> int:
+    if isinstance(iterations, bool) or int(iterations) != iterations or iterations < 1:
+        raise ValueError(f"{name}: iterations must be a positive integer, got {iterations!r}")
+    return int(iterations)
+
+
+def _check_relaxation(name, relaxation) -> float:
+    a = float(relaxation)
+    if not (math.isfinite(a) and a >= 0.0):
+        raise ValueError(f"{name}: relaxation must be a finite number >= 0, got {relaxation!r}")
+    return a
+
+
+def _check_bounds(name, lo, hi, lo_name, hi_name) -> tuple[float, float]:
+    try:
+        lo, hi = float(lo), float(hi)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: {lo_name} and {hi_name} must be numbers, got {lo!r}, {hi!r}") from None
+    if not (math.isfinite(lo) and lo >= 0.0):
+        raise ValueError(f"{name}: {lo_name} must be a finite number >= 0, got {lo}")
+    if math.isnan(hi) or hi < lo:
+        raise ValueError(f"{name}: need {lo_name} <= {hi_name}, got {lo_name}={lo}, {hi_name}={hi}")
+    if hi <= 0.0:
+        raise ValueError(f"{name}: {hi_name} must be > 0 (a zero-size element), got {hi}")
+    return lo, hi
+
+
+class _JacobiLimit:
+    """Shared driver: accumulators allocated once; ``apply`` launches 2 kernels per iteration."""
+
+    capturable = True
+
+    def __init__(self, model, iterations, relaxation):
+        self.model = model
+        self.device = model.device
+        name = type(self).__name__
+        self.iterations = _check_iterations(name, iterations)
+        self.relaxation = _check_relaxation(name, relaxation)
+        n = model.num_vertices
+        self._delta = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        self._count = wp.zeros(n, dtype=float, device=self.device)
+
+    @property
+    def is_noop(self) -> bool:  # pragma: no cover - overridden
+        return False
+
+    def apply(self, state, x_start=None, dt: float = 1.0):
+        """Correct ``state.x`` in place and add ``dx / dt`` to ``state.v``.
+
+        ``x_start`` (the positions at the start of the step) is accepted for the correction
+        interface and not used. A pass whose bounds cannot be violated launches nothing.
+        """
+        if self.is_noop or self._num_elements() == 0:
+            return
+        dt = float(dt)
+        if not (math.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be a positive finite number of seconds, got {dt}")
+        n = self.model.num_vertices
+        for _ in range(self.iterations):
+            self._launch_elements(state.x)
+            wp.launch(limit_apply_kernel, n,
+                      [state.x, state.v, self._delta, self._count, self.relaxation, 1.0 / dt],
+                      device=self.device)
+
+
+class StrainLimit(_JacobiLimit):
+    """Edge strain limiting to ``sigma_min <= |x_i - x_j| / L <= sigma_max`` (notes L1386-1408).
+
+    Args:
+        model: the `ClothModel`; the limit acts on its mesh edges (the stretch springs).
+        sigma_min: smallest allowed stretch ratio, >= 0 (0: no compression limit).
+        sigma_max: largest allowed stretch ratio, >= sigma_min; may be ``inf`` (no limit).
+        iterations: Jacobi iterations per application (default 10).
+        relaxation: the Jacobi blend's ``alpha`` >= 0 (default 0: plain averaging over the active
+            edges at a vertex).
+
+    ``sigma_min = sigma_max = 1`` is exactly (bit for bit, on the CPU) a plain-PBD stretch pass
+    with the same iterations and relaxation; ``[0, inf]`` launches nothing.
+    """
+
+    name = "strain-limit"
+
+    def __init__(self, model, sigma_min: float = 0.0, sigma_max: float = math.inf, *,
+                 iterations: int = 10, relaxation: float = 0.0):
+        self.sigma_min, self.sigma_max = _check_bounds("StrainLimit", sigma_min, sigma_max,
+                                                       "sigma_min", "sigma_max")
+        super().__init__(model, iterations, relaxation)
+        # the mesh edges are the first num_stretch_springs springs of the model
+        ne = model.num_stretch_springs
+        self.num_edges = ne
+        self._edges = model.spring_indices[:ne] if ne else None
+        self._rest = model.spring_rest_length[:ne] if ne else None
+
+    @property
+    def is_noop(self) -> bool:
+        return self.sigma_min == 0.0 and self.sigma_max == math.inf
+
+    def _num_elements(self):
+        return self.num_edges
+
+    def _launch_elements(self, x):
+        m = self.model
+        wp.launch(strain_limit_kernel, self.num_edges,
+                  [x, self._edges, self._rest, m.inv_mass, self.sigma_min,
+                   min(self.sigma_max, 3.0e38), self._delta, self._count],
+                  device=self.device)
+
+    def __repr__(self):
+        return (f"StrainLimit([{self.sigma_min:g}, {self.sigma_max:g}], "
+                f"iterations={self.iterations}, relaxation={self.relaxation:g})")
+
+
+class AreaLimit(_JacobiLimit):
+    """Triangle area limiting to ``[a_min A0, a_max A0]`` (notes L1410-1429).
+
+    Each violating triangle is scaled about its mass-weighted centroid by
+    ``s = sqrt(clamp(A) / A)``, which is the least (mass-weighted) movement that reaches the
+    clamped area and does not translate the triangle (L1425).
+
+    Args:
+        model: the `ClothModel`.
+        a_min: smallest allowed area as a fraction of the rest area, >= 0.
+        a_max: largest allowed fraction, >= a_min; may be ``inf``.
+        iterations: Jacobi iterations per application (default 10).
+        relaxation: the Jacobi blend's ``alpha`` >= 0 (default 0).
+    """
+
+    name = "area-limit"
+
+    def __init__(self, model, a_min: float = 0.0, a_max: float = math.inf, *,
+                 iterations: int = 10, relaxation: float = 0.0):
+        self.a_min, self.a_max = _check_bounds("AreaLimit", a_min, a_max, "a_min", "a_max")
+        super().__init__(model, iterations, relaxation)
+        areas = model.mesh.triangle_areas()
+        self._rest_area = wp.array(areas.astype(np.float32), dtype=float, device=self.device)
+
+    @property
+    def is_noop(self) -> bool:
+        return self.a_min == 0.0 and self.a_max == math.inf
+
+    def _num_elements(self):
+        return self.model.num_triangles
+
+    def _launch_elements(self, x):
+        m = self.model
+        wp.launch(area_limit_kernel, m.num_triangles,
+                  [x, m.tri_indices, self._rest_area, m.mass, m.inv_mass, self.a_min,
+                   min(self.a_max, 3.0e38), self._delta, self._count],
+                  device=self.device)
+
+    def __repr__(self):
+        return (f"AreaLimit([{self.a_min:g}, {self.a_max:g}], "
+                f"iterations={self.iterations}, relaxation={self.relaxation:g})")
