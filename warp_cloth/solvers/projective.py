@@ -153,10 +153,18 @@ def pd_update_kernel(
     decay: float,
     inv_dt: float,
     final: int,
+    omega: float,
+    x_prev: wp.array(dtype=wp.vec3),
 ):
-    """x += dx; on the last iteration also v = (x - x0)/dt * decay (free vertices)."""
+    """x += dx, blended with the previous iterate when omega != 1 (Wang 2015:
+    x <- omega (x + dx) + (1 - omega) x_prev, x_prev <- x); on the last iteration also
+    v = (x - x0)/dt * decay (free vertices)."""
     i = wp.tid()
-    xi = x[i] + dx[i]
+    xo = x[i]
+    xi = xo + dx[i]
+    if omega != 1.0:
+        xi = omega * xi + (1.0 - omega) * x_prev[i]
+    x_prev[i] = xo
     x[i] = xi
     if final != 0 and inv_mass[i] > 0.0:
         v[i] = (xi - x0[i]) * (inv_dt * decay)
@@ -333,7 +341,8 @@ class ProjectiveDynamics(Solver):
     def __init__(self, model, *, iterations: int = 10, linear: str = "chebyshev",
                  linear_iterations: int = 20, linear_tolerance: float | None = None,
                  alpha: float | None = None, rho: float | None = None, rho_safety: float = 0.99,
-                 delay: int = 2, direct: bool = False, direct_max_vertices: int = 4000,
+                 delay: int = 2, outer_rho: float | None = None, outer_delay: int = 2,
+                 direct: bool = False, direct_max_vertices: int = 4000,
                  corrections=()):
         super().__init__(model, corrections=corrections)
         if isinstance(iterations, bool) or int(iterations) != iterations or iterations < 1:
@@ -349,6 +358,10 @@ class ProjectiveDynamics(Solver):
             raise ValueError(f"pd: rho must be in [0, 1) or None, got {rho!r}")
         if not (0.0 < rho_safety <= 1.0):
             raise ValueError(f"pd: rho_safety must be in (0, 1], got {rho_safety!r}")
+        if outer_rho is not None and not (0.0 <= outer_rho < 1.0):
+            raise ValueError(f"pd: outer_rho must be in [0, 1) or None, got {outer_rho!r}")
+        if isinstance(outer_delay, bool) or int(outer_delay) != outer_delay or outer_delay < 0:
+            raise ValueError(f"pd: outer_delay must be an integer >= 0, got {outer_delay!r}")
         if alpha is None:
             alpha = 1.0
         if not (0.0 < alpha <= 2.0):
@@ -371,6 +384,9 @@ class ProjectiveDynamics(Solver):
         self.rho_safety = float(rho_safety)
         self.delay = int(delay)
         self.direct = bool(direct)
+        self.outer_rho = outer_rho
+        self.outer_delay = int(outer_delay)
+        self._omegas = self._outer_omegas()
         self.capturable = self.capturable and not self.direct and linear_tolerance is None
 
         m, d = model, self.device
@@ -381,6 +397,7 @@ class ProjectiveDynamics(Solver):
         self.energy_terms = [t for t in m.force_terms if type(t).__name__ != "SpringForce"
                              and hasattr(t, "energy") and type(t).__name__ != "WindForce"]
         self.x0 = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.x_prev = wp.zeros(n, dtype=wp.vec3, device=d)
         self.y = wp.zeros(n, dtype=wp.vec3, device=d)
         self.f = wp.zeros(n, dtype=wp.vec3, device=d)
         self.b = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -398,6 +415,20 @@ class ProjectiveDynamics(Solver):
         self._free_idx = np.flatnonzero(m.inverse_masses > 0)
         self._last_info = None
         self._stepped = False
+
+    def _outer_omegas(self):
+        """Wang 2015's Chebyshev weights over the outer iterations (1 when ``outer_rho`` is None)."""
+        out, om = [], 1.0
+        for k in range(self.iterations):
+            j = k - self.outer_delay
+            if self.outer_rho is None or j <= 0:
+                om = 1.0
+            elif j == 1:
+                om = 2.0 / (2.0 - self.outer_rho ** 2)
+            else:
+                om = 4.0 / (4.0 - self.outer_rho ** 2 * om)
+            out.append(om)
+        return out
 
     # ------------------------------------------------------------------ set-up (host, per dt)
     def _prepare(self, dt: float):
@@ -465,7 +496,7 @@ class ProjectiveDynamics(Solver):
                 self._last_info = self.linear.solve(A, self.b, self.dx)
             wp.launch(pd_update_kernel, n,
                       [state.x, self.dx, self.x0, state.v, m.inv_mass, decay, 1.0 / dt,
-                       1 if k == K - 1 else 0], device=d)
+                       1 if k == K - 1 else 0, self._omegas[k], self.x_prev], device=d)
         self._stepped = True
 
     def _solve_direct(self):
