@@ -1,0 +1,154 @@
+"""Contact kernel for the analytic obstacles (plane, sphere, box): one thread per vertex, all
+analytic obstacles of a contact fused into one launch.
+
+Per vertex and obstacle (``th`` = contact thickness), in the obstacle's frame, where the obstacle
+is at rest: ``p0`` = start of step position at the pose of t0, ``p1`` = end position at the pose
+of t1 (so the obstacle's motion during the step is part of the relative path).
+
+0. Far test: ``phi(p1) >= th + slack`` and ``phi(p1) - th >= |p1 - p0|`` (phi is 1-Lipschitz, so
+   no point of the path is within ``th``): nothing to do. Most vertices stop here.
+1. Continuous test (sphere, box): if ``p0`` is outside the shape inflated by ``th`` and the segment
+   ``p0 -> p1`` enters it (sphere: the notes' quadratic, ``physics.md`` 2.16 / T40; box: slab test),
+   ``p1`` is projected onto the tangent plane at the entry point. This catches a vertex that passes
+   through the shape within one step. (A plane is a half-space: a crossing always ends inside it,
+   so the discrete test below already catches it.)
+2. Discrete test: if ``phi(p1) < th``, ``p1 <- p1 + (th - phi) grad phi``.
+3. If in contact (``phi < th + slack``), the impulse of `warp_cloth.collision.response`.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .motion import KIND_BOX, KIND_PLANE, KIND_SPHERE, ObstacleData
+from .response import respond
+
+
+@wp.func
+def shape_sdf(kind: int, size: wp.vec3, p: wp.vec3):
+    """(phi, outward unit normal) of an analytic shape in its local frame."""
+    if kind == KIND_PLANE:
+        return p[1], wp.vec3(0.0, 1.0, 0.0)
+    if kind == KIND_SPHERE:
+        l = wp.length(p)
+        n = wp.vec3(0.0, 1.0, 0.0)
+        if l > 1.0e-9:
+            n = p / l
+        return l - size[0], n
+    # box
+    q = wp.vec3(wp.abs(p[0]) - size[0], wp.abs(p[1]) - size[1], wp.abs(p[2]) - size[2])
+    qmax = wp.max(q[0], wp.max(q[1], q[2]))
+    if qmax > 0.0:
+        qo = wp.vec3(wp.max(q[0], 0.0), wp.max(q[1], 0.0), wp.max(q[2], 0.0))
+        l = wp.length(qo)
+        n = wp.vec3(wp.sign(p[0]) * qo[0], wp.sign(p[1]) * qo[1], wp.sign(p[2]) * qo[2]) / l
+        return l, n
+    n = wp.vec3(0.0)
+    if q[0] >= q[1] and q[0] >= q[2]:
+        n = wp.vec3(wp.sign(p[0]), 0.0, 0.0)
+    elif q[1] >= q[2]:
+        n = wp.vec3(0.0, wp.sign(p[1]), 0.0)
+    else:
+        n = wp.vec3(0.0, 0.0, wp.sign(p[2]))
+    return qmax, n
+
+
+@wp.func
+def shape_ccd(kind: int, size: wp.vec3, th: float, p0: wp.vec3, p1: wp.vec3):
+    """First entry of the segment p0 -> p1 into the shape inflated by ``th``.
+
+    Returns (hit, entry point, outward normal there). Only when p0 starts outside.
+    """
+    d = p1 - p0
+    if kind == KIND_SPHERE:
+        r = size[0] + th
+        a = wp.dot(d, d)
+        b = wp.dot(p0, d)
+        c = wp.dot(p0, p0) - r * r
+        if c > 0.0 and a > 0.0:
+            disc = b * b - a * c
+            if disc >= 0.0:
+                t = (-b - wp.sqrt(disc)) / a
+                if t >= 0.0 and t <= 1.0:
+                    h = p0 + t * d
+                    return True, h, wp.normalize(h)
+        return False, p1, wp.vec3(0.0, 1.0, 0.0)
+    if kind == KIND_BOX:
+        ext = size + wp.vec3(th)
+        tmin = float(0.0)
+        tmax = float(1.0)
+        axis = int(-1)
+        miss = False
+        for k in range(3):
+            if wp.abs(d[k]) < 1.0e-12:
+                if wp.abs(p0[k]) > ext[k]:
+                    miss = True
+            else:
+                ta = (-ext[k] - p0[k]) / d[k]
+                tb = (ext[k] - p0[k]) / d[k]
+                tn = wp.min(ta, tb)
+                tf = wp.max(ta, tb)
+                if tn > tmin:
+                    tmin = tn
+                    axis = k
+                tmax = wp.min(tmax, tf)
+        if not miss and axis >= 0 and tmin <= tmax:
+            n = wp.vec3(0.0)
+            n[axis] = -wp.sign(d[axis])
+            return True, p0 + tmin * d, n
+    return False, p1, wp.vec3(0.0, 1.0, 0.0)
+
+
+@wp.kernel
+def analytic_contact_kernel(
+    obstacles: wp.array(dtype=ObstacleData),
+    poses: wp.array(dtype=wp.transform),
+    pose_offset: int,
+    x: wp.array(dtype=wp.vec3),
+    x_start: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    dt: float,
+    thickness: float,
+    slack: float,
+    respond_velocity: int,
+    ccd: int,
+):
+    i = wp.tid()
+    if inv_mass[i] == 0.0:
+        return
+    x0 = x_start[i]
+    x1 = x[i]
+    vi = wp.vec3(0.0)
+    if respond_velocity != 0:
+        vi = v[i]
+    reach = thickness + slack
+    for k in range(obstacles.shape[0]):
+        ob = obstacles[k]
+        j = 4 * (pose_offset + k)
+        p0 = wp.transform_point(poses[j + 2], x0)
+        p1 = wp.transform_point(poses[j + 3], x1)
+        phi, n = shape_sdf(ob.kind, ob.size, p1)
+        # far: the end is out of reach and (phi being 1-Lipschitz) no point of the path is
+        # inside the inflated shape
+        d = p1 - p0
+        if phi >= reach and (ccd == 0 or (phi - thickness) * (phi - thickness) >= wp.dot(d, d)):
+            continue
+        moved = False
+        if ccd != 0 and ob.kind != KIND_PLANE:
+            hit, h, nh = shape_ccd(ob.kind, ob.size, thickness, p0, p1)
+            if hit:
+                p1 = p1 + wp.max(-wp.dot(p1 - h, nh), 0.0) * nh
+                phi, n = shape_sdf(ob.kind, ob.size, p1)
+                moved = True
+        if phi < thickness:
+            p1 = p1 + (thickness - phi) * n
+            moved = True
+        if respond_velocity != 0 and (moved or phi < reach):
+            x1, vi = respond(p0, p1, n, poses[j], poses[j + 1], vi, dt, ob.restitution,
+                             ob.friction)
+        elif moved:
+            x1 = wp.transform_point(poses[j + 1], p1)
+    x[i] = x1
+    if respond_velocity != 0:
+        v[i] = vi

@@ -1,0 +1,180 @@
+"""Contact kernel for triangle-mesh obstacles (`wp.Mesh` BVH queries): one thread per vertex, all
+mesh obstacles of a contact fused into one launch. Kept apart from the analytic kernels so that a
+scene without a mesh obstacle never compiles it.
+
+Per vertex and mesh, in the mesh's frame (``p0`` at the pose of t0, ``p1`` at the pose of t1, so the
+obstacle's motion during the step is part of the relative path), with contact thickness ``th``:
+
+0. Closest point to ``p1`` within ``th + slack + |p1 - p0|`` (``wp.mesh_query_point_sign_normal``
+   for closed meshes, searching the whole mesh when ``p1`` lies in its bounding box, so a vertex
+   deep inside is found; ``mesh_query_point_no_sign`` for open meshes). None: the path cannot
+   reach the surface, nothing to do (most vertices; a box test rejects the far ones first).
+1. Continuous test, when the path is longer than the end's distance to the surface (or the end
+   is inside): a ray query from ``p0`` along ``p1 - p0`` (``wp.mesh_query_ray``, ``max_t = 1``)
+   finds the first triangle the path crosses. If it does (for a closed mesh: entering through the
+   front side), ``p1`` is projected onto the plane ``th`` in front of the hit triangle on the side
+   ``p0`` came from. No path can cross a triangle, however thin the mesh and however fast the vertex
+   or the obstacle (T45).
+2. Discrete test at ``p1``: if closer than ``th`` to the closest point ``c`` (or inside),
+   ``p1 <- c + th n``, with ``n`` pointing from ``c`` to the outside (closed) or to the vertex's
+   side (open).
+3. In contact: the impulse of `warp_cloth.collision.response`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .motion import ObstacleData
+from .response import respond
+
+
+@wp.func
+def closest(mid: wp.uint64, closed: int, p: wp.vec3, p_from: wp.vec3, center: wp.vec3,
+            half: wp.vec3, max_dist: float):
+    """(found, closest point c, signed distance phi, unit normal n pointing from c to the side
+    the point belongs on). Closed mesh: outside; when ``p`` is in the mesh's bounding box the
+    whole mesh is searched, so a point deep inside is found too. Open mesh: the side of ``p``,
+    or of ``p_from`` when ``p`` lies on the surface."""
+    c = p
+    phi = float(0.0)
+    n = wp.vec3(0.0, 1.0, 0.0)
+    if closed != 0:
+        rel = p - center
+        md = max_dist
+        if wp.abs(rel[0]) <= half[0] and wp.abs(rel[1]) <= half[1] and wp.abs(rel[2]) <= half[2]:
+            md = wp.max(max_dist, 2.0 * wp.length(half))
+        q = wp.mesh_query_point_sign_normal(mid, p, md)
+        if not q.result:
+            return False, c, phi, n
+        c = wp.mesh_eval_position(mid, q.face, q.u, q.v)
+        diff = p - c
+        dist = wp.length(diff)
+        n = wp.mesh_eval_face_normal(mid, q.face)
+        phi = dist
+        if q.sign < 0.0:
+            phi = -dist
+            if dist > 1.0e-9:
+                n = -diff / dist
+        elif dist > 1.0e-9:
+            n = diff / dist
+        return True, c, phi, n
+    q = wp.mesh_query_point_no_sign(mid, p, max_dist)
+    if not q.result:
+        return False, c, phi, n
+    c = wp.mesh_eval_position(mid, q.face, q.u, q.v)
+    diff = p - c
+    phi = wp.length(diff)
+    if phi > 1.0e-9:
+        n = diff / phi
+    else:
+        n = wp.mesh_eval_face_normal(mid, q.face)
+        if wp.dot(p_from - c, n) < 0.0:
+            n = -n
+    return True, c, phi, n
+
+
+@wp.kernel
+def mesh_contact_kernel(
+    obstacles: wp.array(dtype=ObstacleData),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    poses: wp.array(dtype=wp.transform),
+    pose_offset: int,
+    x: wp.array(dtype=wp.vec3),
+    x_start: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    dt: float,
+    thickness: float,
+    slack: float,
+    respond_velocity: int,
+    ccd: int,
+):
+    i = wp.tid()
+    if inv_mass[i] == 0.0:
+        return
+    x0 = x_start[i]
+    x1 = x[i]
+    vi = wp.vec3(0.0)
+    if respond_velocity != 0:
+        vi = v[i]
+    reach = thickness + slack
+    for k in range(obstacles.shape[0]):
+        ob = obstacles[k]
+        mid = mesh_ids[k]
+        j = 4 * (pose_offset + k)
+        p0 = wp.transform_point(poses[j + 2], x0)
+        p1 = wp.transform_point(poses[j + 3], x1)
+        d = p1 - p0
+        len_d = wp.length(d)
+        if ccd == 0:
+            len_d = 0.0
+        # cheap rejection: the path's box against the mesh's box grown by the reach
+        lo = wp.min(p0, p1) - ob.center
+        hi = wp.max(p0, p1) - ob.center
+        ext = ob.size + wp.vec3(reach)
+        if (lo[0] > ext[0] or lo[1] > ext[1] or lo[2] > ext[2]
+                or hi[0] < -ext[0] or hi[1] < -ext[1] or hi[2] < -ext[2]):
+            continue
+        # closest point to the end position, as far as the path could reach
+        found, c, phi, n = closest(mid, ob.closed, p1, p0, ob.center, ob.size, reach + len_d)
+        if not found:
+            continue  # no surface within reach of the end, so the path cannot cross one
+        moved = False
+        if ccd != 0 and (phi < 0.0 or phi < len_d):
+            ray = wp.mesh_query_ray(mid, p0, d, 1.0)
+            if ray.result:
+                dn = wp.dot(d, ray.normal)
+                if ob.closed == 0 or dn < 0.0:
+                    ns = ray.normal  # the side the vertex came from
+                    if dn > 0.0:
+                        ns = -ray.normal
+                    h = p0 + ray.t * d
+                    p1 = p1 + wp.max(thickness - wp.dot(p1 - h, ns), 0.0) * ns
+                    moved = True
+                    found, c, phi, n = closest(mid, ob.closed, p1, p0, ob.center, ob.size, reach)
+                    if not found:
+                        n = ns
+                        phi = thickness
+        if phi < thickness:
+            p1 = c + thickness * n
+            moved = True
+        if respond_velocity != 0 and (moved or phi < reach):
+            x1, vi = respond(p0, p1, n, poses[j], poses[j + 1], vi, dt, ob.restitution,
+                             ob.friction)
+        elif moved:
+            x1 = wp.transform_point(poses[j + 1], p1)
+    x[i] = x1
+    if respond_velocity != 0:
+        v[i] = vi
+
+
+@wp.kernel
+def mesh_distance_kernel(mesh: wp.uint64, closed: int, points: wp.array(dtype=wp.vec3),
+                         max_dist: float, out: wp.array(dtype=float)):
+    i = wp.tid()
+    p = points[i]
+    if closed != 0:
+        q = wp.mesh_query_point_sign_winding_number(mesh, p, max_dist)
+        if q.result:
+            c = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+            out[i] = q.sign * wp.length(p - c)
+    else:
+        q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
+        if q.result:
+            c = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+            out[i] = wp.length(p - c)
+
+
+def mesh_signed_distance(obstacle, local_points, device="cpu") -> np.ndarray:
+    """Signed (closed mesh; winding number) or unsigned (open) distance of local points, on the
+    host. For tests and reports; not for use inside a step."""
+    pts = np.asarray(local_points, dtype=np.float32).reshape(-1, 3)
+    mesh = obstacle.wp_mesh(device)
+    out = wp.zeros(len(pts), dtype=float, device=device)
+    big = float(1e6)
+    wp.launch(mesh_distance_kernel, len(pts),
+              [mesh.id, int(obstacle.closed), wp.array(pts, dtype=wp.vec3, device=device), big, out],
+              device=device)
+    return out.numpy().astype(np.float64)

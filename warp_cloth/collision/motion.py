@@ -1,0 +1,324 @@
+"""Scripted rigid motion of obstacles, evaluated on the device from the simulated time.
+
+An obstacle has a rest pose ``B`` (centre ``c_B``, rotation ``R_B``) and a `Motion`. Its pose at
+time ``t`` maps a point ``p`` of the obstacle's own (local) frame to the world as
+
+    y(t) = c(t) + R(t) p,      c(t) = c_B + d(t) + u tau(t),      R(t) = exp(w tau(t)) Q(t) R_B
+
+where ``u`` (m/s) and ``w`` (rad/s, world axes, about the obstacle's centre) are a constant linear
+and angular velocity, ``d(t), Q(t)`` an optional `KeyframePath` (offset of the centre, rotation about
+the centre; linear / slerp between keys, clamped at both ends), and ``tau(t)`` the elapsed time since
+``start`` with an optional linear ``ramp`` of the speed:
+
+    s = max(t - start, 0);   tau = s^2 / (2 ramp)  if s < ramp,   else  s - ramp / 2
+
+so the velocity grows linearly from 0 to ``u`` (and the spin to ``w``) over ``ramp`` seconds.
+
+The same formula exists twice: `Motion.pose` (NumPy, float64; for USD output and tests) and
+`obstacle_pose` (a Warp function used by the contact kernels, reading the time from the device
+so a step stays capturable as a graph). The surface velocity of the obstacle at a world point is
+taken as the displacement of the material point over the step, ``(y - T(t0) T(t1)^-1 y) / dt``,
+which is consistent with the contact kernels' test of each vertex's path in the obstacle frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+__all__ = [
+    "KeyframePath", "Motion", "ObstacleData", "obstacle_pose", "quat_from_axis_angle",
+    "quat_between", "quat_multiply", "quat_rotate", "KIND_PLANE", "KIND_SPHERE", "KIND_BOX",
+    "KIND_MESH",
+]
+
+KIND_PLANE = 0
+KIND_SPHERE = 1
+KIND_BOX = 2
+KIND_MESH = 3
+
+TWO_PI = 2.0 * math.pi
+
+
+# ---------------------------------------------------------------- host quaternions (x, y, z, w)
+def quat_from_axis_angle(axis, angle: float) -> np.ndarray:
+    """Unit quaternion ``(x, y, z, w)`` for a rotation of ``angle`` radians about ``axis``."""
+    a = np.asarray(axis, dtype=np.float64).reshape(3)
+    n = np.linalg.norm(a)
+    if n == 0.0 or angle == 0.0:
+        return np.array([0.0, 0.0, 0.0, 1.0])
+    s = math.sin(0.5 * angle) / n
+    return np.array([a[0] * s, a[1] * s, a[2] * s, math.cos(0.5 * angle)])
+
+
+def quat_multiply(a, b) -> np.ndarray:
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array([
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    ])
+
+
+def quat_rotate(q, p) -> np.ndarray:
+    """Rotate points ``p`` (..., 3) by the unit quaternion ``q``."""
+    q = np.asarray(q, dtype=np.float64)
+    u, w = q[:3], q[3]
+    p = np.asarray(p, dtype=np.float64)
+    t = 2.0 * np.cross(u, p)
+    return p + w * t + np.cross(u, t)
+
+
+def quat_between(a, b) -> np.ndarray:
+    """The shortest rotation taking direction ``a`` to direction ``b``."""
+    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
+    c = float(np.dot(a, b))
+    if c < -1.0 + 1e-12:  # opposite: any perpendicular axis
+        axis = np.cross(a, [1.0, 0.0, 0.0])
+        if np.linalg.norm(axis) < 1e-6:
+            axis = np.cross(a, [0.0, 0.0, 1.0])
+        return quat_from_axis_angle(axis, math.pi)
+    q = np.array([*np.cross(a, b), 1.0 + c])
+    return q / np.linalg.norm(q)
+
+
+def _slerp(a, b, s):
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    d = float(np.dot(a, b))
+    if d < 0.0:
+        b, d = -b, -d
+    if d > 0.9995:
+        q = a + s * (b - a)
+        return q / np.linalg.norm(q)
+    th = math.acos(min(d, 1.0))
+    return (math.sin((1 - s) * th) * a + math.sin(s * th) * b) / math.sin(th)
+
+
+def check_vec3(name, value) -> np.ndarray:
+    a = np.asarray(value, dtype=np.float64).reshape(-1)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+    return a
+
+
+def check_quat(name, value) -> np.ndarray:
+    q = np.asarray(value, dtype=np.float64).reshape(-1)
+    if q.shape != (4,) or not np.all(np.isfinite(q)):
+        raise ValueError(f"{name} must be a quaternion of 4 finite numbers (x, y, z, w), got {value!r}")
+    n = np.linalg.norm(q)
+    if n < 1e-9:
+        raise ValueError(f"{name} must be a non-zero quaternion, got {value!r}")
+    return q / n
+
+
+# ---------------------------------------------------------------- host motion description
+@dataclass
+class KeyframePath:
+    """A keyframed rigid path: offsets of the obstacle's centre and rotations about it.
+
+    Args:
+        times: (K,) strictly increasing key times in seconds. Before the first key the obstacle
+            holds the first key's pose, after the last the last one's.
+        offsets: (K, 3) displacement of the centre from its rest position, metres.
+        rotations: optional (K, 4) unit quaternions ``(x, y, z, w)`` applied about the centre
+            (slerp between keys, so keep successive keys less than 180 degrees apart).
+    """
+
+    times: np.ndarray
+    offsets: np.ndarray
+    rotations: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.times = np.asarray(self.times, dtype=np.float64).reshape(-1)
+        k = len(self.times)
+        if k < 1:
+            raise ValueError("KeyframePath: needs at least one key")
+        if not np.all(np.isfinite(self.times)):
+            raise ValueError("KeyframePath: times must be finite")
+        if k > 1 and np.any(np.diff(self.times) <= 0):
+            i = int(np.argmax(np.diff(self.times) <= 0))
+            raise ValueError(f"KeyframePath: times must increase strictly (key {i + 1})")
+        self.offsets = np.asarray(self.offsets, dtype=np.float64)
+        if self.offsets.shape != (k, 3) or not np.all(np.isfinite(self.offsets)):
+            raise ValueError(f"KeyframePath: offsets must be finite with shape ({k}, 3), "
+                             f"got {self.offsets.shape}")
+        if self.rotations is None:
+            self.rotations = np.tile([0.0, 0.0, 0.0, 1.0], (k, 1))
+        else:
+            r = np.asarray(self.rotations, dtype=np.float64)
+            if r.shape != (k, 4) or not np.all(np.isfinite(r)):
+                raise ValueError(f"KeyframePath: rotations must be finite with shape ({k}, 4)")
+            n = np.linalg.norm(r, axis=1)
+            if np.any(n < 1e-9):
+                raise ValueError(f"KeyframePath: rotation {int(np.argmin(n))} is a zero quaternion")
+            self.rotations = r / n[:, None]
+
+    def at(self, t: float):
+        """(offset, rotation) at time ``t``."""
+        ts = self.times
+        if t <= ts[0]:
+            return self.offsets[0].copy(), self.rotations[0].copy()
+        if t >= ts[-1]:
+            return self.offsets[-1].copy(), self.rotations[-1].copy()
+        k = int(np.searchsorted(ts, t, side="right") - 1)
+        s = (t - ts[k]) / (ts[k + 1] - ts[k])
+        off = self.offsets[k] * (1 - s) + self.offsets[k + 1] * s
+        return off, _slerp(self.rotations[k], self.rotations[k + 1], s)
+
+
+@dataclass
+class Motion:
+    """Scripted rigid motion of an obstacle (see the module docstring for the formula).
+
+    Args:
+        linear_velocity: m/s, world axes.
+        angular_velocity: rad/s, world axes, about the obstacle's centre (``(0, 3, 0)``: spin
+            about the vertical at 3 rad/s).
+        start: s; the velocities act from this time on.
+        ramp: s; the velocities grow linearly from 0 over this time after ``start`` (0: at once).
+        path: optional `KeyframePath` composed with the velocities.
+    """
+
+    linear_velocity: tuple = (0.0, 0.0, 0.0)
+    angular_velocity: tuple = (0.0, 0.0, 0.0)
+    start: float = 0.0
+    ramp: float = 0.0
+    path: KeyframePath | None = None
+
+    def __post_init__(self):
+        self.linear_velocity = check_vec3("linear_velocity", self.linear_velocity)
+        self.angular_velocity = check_vec3("angular_velocity", self.angular_velocity)
+        self.start = float(self.start)
+        self.ramp = float(self.ramp)
+        if not math.isfinite(self.start):
+            raise ValueError(f"start must be finite, got {self.start}")
+        if not (math.isfinite(self.ramp) and self.ramp >= 0):
+            raise ValueError(f"ramp must be finite and >= 0 seconds, got {self.ramp}")
+        if self.path is not None and not isinstance(self.path, KeyframePath):
+            raise TypeError("path must be a KeyframePath")
+
+    @property
+    def is_static(self) -> bool:
+        return (self.path is None and not np.any(self.linear_velocity)
+                and not np.any(self.angular_velocity))
+
+    def tau(self, t: float) -> float:
+        s = max(t - self.start, 0.0)
+        if self.ramp > 0.0 and s < self.ramp:
+            return s * s / (2.0 * self.ramp)
+        return s - 0.5 * self.ramp
+
+    def pose(self, t: float, position, rotation):
+        """World centre and rotation ``(x, y, z, w)`` at time ``t`` of a body at rest pose
+        (``position``, ``rotation``)."""
+        tau = self.tau(t)
+        c = np.asarray(position, dtype=np.float64) + self.linear_velocity * tau
+        q = np.asarray(rotation, dtype=np.float64)
+        if self.path is not None:
+            off, qp = self.path.at(t)
+            c = c + off
+            q = quat_multiply(qp, q)
+        rate = float(np.linalg.norm(self.angular_velocity))
+        if rate > 0.0:
+            ang = math.fmod(rate * tau, TWO_PI)
+            q = quat_multiply(quat_from_axis_angle(self.angular_velocity, ang), q)
+        return c, q / np.linalg.norm(q)
+
+
+# ---------------------------------------------------------------- device data and pose
+@wp.struct
+class ObstacleData:
+    """One obstacle as the contact kernels see it (see `warp_cloth.collision.obstacles`)."""
+
+    kind: int  # KIND_PLANE, KIND_SPHERE, KIND_BOX, KIND_MESH
+    size: wp.vec3  # sphere: (r, 0, 0); box: half extents; mesh: local AABB half extents
+    center: wp.vec3  # mesh: local AABB centre (else 0)
+    closed: int  # mesh: 1 when watertight and outward oriented
+    position: wp.vec3  # rest pose centre, m
+    rotation: wp.quat  # rest pose rotation
+    velocity: wp.vec3  # m/s
+    spin_axis: wp.vec3  # unit
+    spin_rate: wp.float64  # rad/s
+    start: wp.float64  # s
+    ramp: wp.float64  # s
+    key_start: int  # first key in the shared key arrays
+    key_count: int  # 0: no path
+    friction: float  # mu_T
+    restitution: float  # mu_N
+
+
+@wp.func
+def motion_tau(ob: ObstacleData, t: wp.float64):
+    s = wp.max(t - ob.start, wp.float64(0.0))
+    if ob.ramp > wp.float64(0.0) and s < ob.ramp:
+        return s * s / (wp.float64(2.0) * ob.ramp)
+    return s - wp.float64(0.5) * ob.ramp
+
+
+@wp.func
+def obstacle_pose(ob: ObstacleData, key_times: wp.array(dtype=wp.float64),
+                  key_offsets: wp.array(dtype=wp.vec3), key_rotations: wp.array(dtype=wp.quat),
+                  t: wp.float64):
+    """World transform (local -> world) of obstacle ``ob`` at time ``t`` (same as `Motion.pose`)."""
+    tau = motion_tau(ob, t)
+    c = ob.position + ob.velocity * float(tau)
+    q = ob.rotation
+    n = ob.key_count
+    if n > 0:
+        k0 = ob.key_start
+        off = key_offsets[k0]
+        qp = key_rotations[k0]
+        if t >= key_times[k0 + n - 1]:
+            off = key_offsets[k0 + n - 1]
+            qp = key_rotations[k0 + n - 1]
+        elif t > key_times[k0]:
+            k = k0
+            while k < k0 + n - 2 and t >= key_times[k + 1]:
+                k += 1
+            s = float((t - key_times[k]) / (key_times[k + 1] - key_times[k]))
+            off = key_offsets[k] * (1.0 - s) + key_offsets[k + 1] * s
+            qa = key_rotations[k]
+            qb = key_rotations[k + 1]
+            if wp.dot(qa, qb) < 0.0:
+                qb = -qb
+            qp = wp.quat_slerp(qa, qb, s)
+        c = c + off
+        q = wp.mul(qp, q)
+    if ob.spin_rate > wp.float64(0.0):
+        ang = wp.mod(ob.spin_rate * tau, wp.float64(6.283185307179586))
+        q = wp.mul(wp.quat_from_axis_angle(ob.spin_axis, float(ang)), q)
+    return wp.transform(c, wp.normalize(q))
+
+
+@wp.kernel
+def obstacle_poses_kernel(
+    obstacles: wp.array(dtype=ObstacleData),
+    key_times: wp.array(dtype=wp.float64),
+    key_offsets: wp.array(dtype=wp.vec3),
+    key_rotations: wp.array(dtype=wp.quat),
+    time: wp.array(dtype=wp.float64),
+    clock: wp.array(dtype=wp.float64),
+    dt: float,
+    advance_clock: int,
+    poses: wp.array(dtype=wp.transform),
+):
+    """Poses of every obstacle at the start and end of the step, once per step (one thread per
+    obstacle): ``poses[4k + 0..3] = T(t0), T(t1), T(t0)^-1, T(t1)^-1``."""
+    k = wp.tid()
+    t0 = time[0]
+    t1 = t0 + wp.float64(dt)
+    if advance_clock != 0 and k == 0:
+        clock[0] = t1  # the next step's start time, for project_positions without a time
+    T0 = obstacle_pose(obstacles[k], key_times, key_offsets, key_rotations, t0)
+    T1 = obstacle_pose(obstacles[k], key_times, key_offsets, key_rotations, t1)
+    poses[4 * k + 0] = T0
+    poses[4 * k + 1] = T1
+    poses[4 * k + 2] = wp.transform_inverse(T0)
+    poses[4 * k + 3] = wp.transform_inverse(T1)

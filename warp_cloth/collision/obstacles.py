@@ -1,0 +1,374 @@
+"""Rigid obstacles: infinite plane, sphere, box and triangle mesh, each with a scripted motion.
+
+Every obstacle is a shape in its own local frame plus a pose: a rest centre ``position`` and
+``rotation`` (unit quaternion ``(x, y, z, w)``) moved by an optional `Motion` (linear and angular
+velocity with a start time and ramp, and/or a `KeyframePath`); see `warp_cloth.collision.motion`.
+Local shapes and their signed distance ``phi`` (negative inside, metres):
+
+- `Plane`: the half-space below ``y = 0`` in the local frame (built from a world ``normal`` and a
+  ``point``): ``phi = y``. Infinite; a vertex anywhere below it is inside, so it cannot tunnel.
+- `Sphere`: ``phi = |p| - radius``.
+- `Box`: ``half_extents``; the exact box distance (outside: distance to the box; inside: minus the
+  distance to the nearest face).
+- `MeshObstacle`: a closed (watertight, outward-oriented: inside/outside known) or open
+  (two-sided: a vertex is kept on the side it came from) triangle mesh, queried with Warp's
+  `wp.Mesh` BVH. Closedness is detected from the mesh's boundary edges; a closed mesh with
+  inward-facing triangles is flipped.
+
+Each obstacle writes itself to the USD stage (`usd_define` once, `usd_write` every frame): an
+``Xform`` under ``/World`` whose ``translate`` and ``orient`` are time-sampled when it moves, with
+the geometry (``Sphere``, ``Cube`` scaled to the box, a ``Mesh``; a plane is a finite square
+``display_size`` m wide) as its child.
+
+Per-obstacle ``friction`` (mu_T) and ``restitution`` (mu_N) override the contact's defaults.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from .motion import (
+    KIND_BOX, KIND_MESH, KIND_PLANE, KIND_SPHERE, Motion, check_quat, check_vec3, quat_between,
+    quat_rotate,
+)
+
+__all__ = ["Obstacle", "Plane", "Sphere", "Box", "MeshObstacle"]
+
+
+def _check_coefficient(name, value, upper=None):
+    if value is None:
+        return None
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(value) or value < 0 or (upper is not None and value > upper):
+        rng = f"in [0, {upper:g}]" if upper is not None else ">= 0"
+        raise ValueError(f"{name} must be finite and {rng}, got {value}")
+    return value
+
+
+class Obstacle:
+    """Base class: pose, motion, material overrides, USD output. Use a subclass."""
+
+    kind = -1
+    default_name = "obstacle"
+    color = (0.55, 0.6, 0.7)
+
+    def __init__(self, position=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0, 1.0), motion=None,
+                 friction=None, restitution=None, name=None):
+        self.position = check_vec3("position", position)
+        self.rotation = check_quat("rotation", rotation)
+        if motion is None:
+            motion = Motion()
+        if not isinstance(motion, Motion):
+            raise TypeError(f"motion must be a warp_cloth.collision.Motion, got {type(motion).__name__}")
+        self.motion = motion
+        self.friction = _check_coefficient("friction", friction)
+        self.restitution = _check_coefficient("restitution", restitution, upper=1.0)
+        self.name = name or self.default_name
+        self._usd = None
+
+    # ------------------------------------------------------------ pose
+    @property
+    def moving(self) -> bool:
+        return not self.motion.is_static
+
+    def pose(self, t: float = 0.0):
+        """World centre (3,) and rotation quaternion ``(x, y, z, w)`` at time ``t`` (s)."""
+        return self.motion.pose(float(t), self.position, self.rotation)
+
+    def to_local(self, points, t: float = 0.0) -> np.ndarray:
+        c, q = self.pose(t)
+        qi = np.array([-q[0], -q[1], -q[2], q[3]])
+        return quat_rotate(qi, np.asarray(points, dtype=np.float64) - c)
+
+    def to_world(self, points, t: float = 0.0) -> np.ndarray:
+        c, q = self.pose(t)
+        return quat_rotate(q, np.asarray(points, dtype=np.float64)) + c
+
+    def signed_distance(self, points, t: float = 0.0) -> np.ndarray:
+        """Signed distance (m, negative inside) of world points (N, 3) at time ``t``."""
+        return self._local_sdf(self.to_local(np.atleast_2d(points), t))
+
+    def _local_sdf(self, p):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def surface_velocity(self, points, t: float = 0.0, h: float = 1e-4) -> np.ndarray:
+        """Velocity (m/s) of the obstacle's material points now at ``points`` (central difference)."""
+        p = np.atleast_2d(np.asarray(points, dtype=np.float64))
+        local = self.to_local(p, t)
+        return (self.to_world(local, t + h) - self.to_world(local, t - h)) / (2 * h)
+
+    # ------------------------------------------------------------ device data
+    def _size(self):
+        return (0.0, 0.0, 0.0)
+
+    def device_data(self, key_start: int, friction: float, restitution: float):
+        """The `ObstacleData` struct for the contact kernels."""
+        import warp as wp
+
+        from .motion import ObstacleData
+
+        d = ObstacleData()
+        d.kind = self.kind
+        d.size = wp.vec3(*self._size())
+        d.center = wp.vec3(*self._center())
+        d.closed = int(getattr(self, "closed", False))
+        d.position = wp.vec3(*self.position)
+        d.rotation = wp.quat(*self.rotation)
+        m = self.motion
+        d.velocity = wp.vec3(*m.linear_velocity)
+        rate = float(np.linalg.norm(m.angular_velocity))
+        d.spin_axis = wp.vec3(*(m.angular_velocity / rate if rate > 0 else (0.0, 1.0, 0.0)))
+        d.spin_rate = wp.float64(rate)
+        d.start = wp.float64(m.start)
+        d.ramp = wp.float64(m.ramp)
+        d.key_start = int(key_start)
+        d.key_count = 0 if m.path is None else len(m.path.times)
+        d.friction = float(friction if self.friction is None else self.friction)
+        d.restitution = float(restitution if self.restitution is None else self.restitution)
+        return d
+
+    def _center(self):
+        return (0.0, 0.0, 0.0)
+
+    # ------------------------------------------------------------ USD
+    def usd_define(self, stage, parent: str = "/World"):
+        """Define this obstacle's prims under ``parent`` (an Xform with the geometry inside)."""
+        from pxr import Gf, UsdGeom
+
+        base = f"{parent}/{''.join(c if c.isalnum() or c == '_' else '_' for c in self.name)}"
+        path, k = base, 1
+        while stage.GetPrimAtPath(path).IsValid():
+            path, k = f"{base}_{k}", k + 1
+        xf = UsdGeom.Xform.Define(stage, path)
+        t_op = xf.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble)
+        o_op = xf.AddOrientOp(UsdGeom.XformOp.PrecisionFloat)
+        geom = self._usd_geometry(stage, path)
+        UsdGeom.Gprim(geom.GetPrim()).CreateDisplayColorAttr([Gf.Vec3f(*self.color)])
+        self._usd = (t_op, o_op)
+        c, q = self.pose(0.0)
+        t_op.Set(Gf.Vec3d(*c))
+        o_op.Set(Gf.Quatf(float(q[3]), float(q[0]), float(q[1]), float(q[2])))
+        return path
+
+    def usd_write(self, stage, frame: int, t: float):
+        """Record the pose at simulated time ``t`` at time code ``frame`` (moving obstacles only)."""
+        if self._usd is None or not self.moving:
+            return
+        from pxr import Gf, Usd
+
+        t_op, o_op = self._usd
+        c, q = self.pose(t)
+        tc = Usd.TimeCode(frame)
+        t_op.Set(Gf.Vec3d(*c), tc)
+        o_op.Set(Gf.Quatf(float(q[3]), float(q[0]), float(q[1]), float(q[2])), tc)
+
+    def _usd_geometry(self, stage, path):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def __repr__(self):
+        mv = " moving" if self.moving else ""
+        return f"{type(self).__name__}({self.name!r}{mv}, position={self.position.tolist()})"
+
+
+class Plane(Obstacle):
+    """An infinite plane through ``point`` with outward unit ``normal`` (the side the cloth is on).
+
+    Args:
+        normal: outward normal (normalised here).
+        point: a point on the plane, m.
+        motion, friction, restitution, name: see `Obstacle`.
+        display_size: side of the square drawn in USD, m (the plane itself is infinite).
+    """
+
+    kind = KIND_PLANE
+    default_name = "ground"
+    color = (0.45, 0.47, 0.5)
+
+    def __init__(self, normal=(0.0, 1.0, 0.0), point=(0.0, 0.0, 0.0), *, motion=None,
+                 friction=None, restitution=None, name=None, display_size: float = 4.0):
+        n = check_vec3("normal", normal)
+        ln = float(np.linalg.norm(n))
+        if ln < 1e-9:
+            raise ValueError(f"normal must be a non-zero vector, got {normal!r}")
+        self.normal = n / ln
+        self.display_size = float(display_size)
+        if not (math.isfinite(self.display_size) and self.display_size > 0):
+            raise ValueError(f"display_size must be > 0, got {display_size}")
+        super().__init__(point, quat_between((0.0, 1.0, 0.0), self.normal), motion, friction,
+                         restitution, name)
+
+    def _local_sdf(self, p):
+        return p[:, 1].copy()
+
+    def _usd_geometry(self, stage, path):
+        from pxr import UsdGeom
+
+        h = 0.5 * self.display_size
+        m = UsdGeom.Mesh.Define(stage, f"{path}/geom")
+        m.CreatePointsAttr([(-h, 0, -h), (-h, 0, h), (h, 0, h), (h, 0, -h)])
+        m.CreateFaceVertexCountsAttr([4])
+        m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+        m.CreateExtentAttr([(-h, 0, -h), (h, 0, h)])
+        m.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        return m
+
+
+class Sphere(Obstacle):
+    """A solid sphere of ``radius`` m centred at ``center``."""
+
+    kind = KIND_SPHERE
+    default_name = "sphere"
+
+    def __init__(self, radius: float, center=(0.0, 0.0, 0.0), *, rotation=(0.0, 0.0, 0.0, 1.0),
+                 motion=None, friction=None, restitution=None, name=None):
+        r = float(radius)
+        if not (math.isfinite(r) and r > 0):
+            raise ValueError(f"radius must be a positive finite number of metres, got {radius}")
+        self.radius = r
+        super().__init__(center, rotation, motion, friction, restitution, name)
+
+    def _size(self):
+        return (self.radius, 0.0, 0.0)
+
+    def _local_sdf(self, p):
+        return np.linalg.norm(p, axis=1) - self.radius
+
+    def _usd_geometry(self, stage, path):
+        from pxr import UsdGeom
+
+        s = UsdGeom.Sphere.Define(stage, f"{path}/geom")
+        s.CreateRadiusAttr(self.radius)
+        r = self.radius
+        s.CreateExtentAttr([(-r, -r, -r), (r, r, r)])
+        return s
+
+
+class Box(Obstacle):
+    """A solid box with ``half_extents`` (m) centred at ``center``, oriented by ``rotation``."""
+
+    kind = KIND_BOX
+    default_name = "box"
+
+    def __init__(self, half_extents, center=(0.0, 0.0, 0.0), *, rotation=(0.0, 0.0, 0.0, 1.0),
+                 motion=None, friction=None, restitution=None, name=None):
+        h = check_vec3("half_extents", half_extents)
+        if np.any(h <= 0):
+            raise ValueError(f"half_extents must all be > 0 m, got {tuple(h)}")
+        self.half_extents = h
+        super().__init__(center, rotation, motion, friction, restitution, name)
+
+    def _size(self):
+        return tuple(self.half_extents)
+
+    def _local_sdf(self, p):
+        q = np.abs(p) - self.half_extents
+        outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
+        inside = np.minimum(q.max(axis=1), 0.0)
+        return outside + inside
+
+    def _usd_geometry(self, stage, path):
+        from pxr import Gf, UsdGeom
+
+        c = UsdGeom.Cube.Define(stage, f"{path}/geom")
+        c.CreateSizeAttr(2.0)
+        c.AddScaleOp().Set(Gf.Vec3f(*[float(v) for v in self.half_extents]))
+        c.CreateExtentAttr([(-1, -1, -1), (1, 1, 1)])
+        return c
+
+
+class MeshObstacle(Obstacle):
+    """A rigid triangle mesh obstacle.
+
+    Args:
+        mesh: a `warp_cloth.TriMesh`, a path to an ``.obj`` file, or ``(vertices, triangles)``.
+            Its vertices are the local frame (times ``scale``); spin is about the local origin.
+        position, rotation: rest pose of the local origin.
+        scale: uniform scale (> 0) applied to the vertices.
+        closed: ``None`` (default) detects it: closed when no edge has a single triangle. A closed
+            mesh must be watertight; inside points are pushed out. An open mesh is two-sided.
+        motion, friction, restitution, name: see `Obstacle`.
+
+    The `wp.Mesh` (BVH) is built on first use on the contact's device (`wp_mesh`).
+    """
+
+    kind = KIND_MESH
+    default_name = "mesh_obstacle"
+
+    def __init__(self, mesh, *, position=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0, 1.0),
+                 scale: float = 1.0, closed=None, motion=None, friction=None, restitution=None,
+                 name=None):
+        from ..mesh import TriMesh
+
+        if isinstance(mesh, (str, os.PathLike)):
+            mesh = TriMesh.from_obj(mesh)
+        elif isinstance(mesh, tuple) and len(mesh) == 2:
+            mesh = TriMesh(np.asarray(mesh[0], dtype=np.float64), np.asarray(mesh[1]),
+                           name=name or self.default_name)
+        if not isinstance(mesh, TriMesh):
+            raise TypeError("mesh must be a TriMesh, an .obj path or (vertices, triangles)")
+        scale = float(scale)
+        if not (math.isfinite(scale) and scale > 0):
+            raise ValueError(f"scale must be a positive finite number, got {scale}")
+        auto_closed = len(mesh.boundary_edges) == 0
+        if closed is None:
+            closed = auto_closed
+        elif closed and not auto_closed:
+            raise ValueError(f"mesh {mesh.name!r} has {len(mesh.boundary_edges)} boundary edges; "
+                             "it cannot be used as a closed obstacle")
+        self.closed = bool(closed)
+        verts = np.asarray(mesh.vertices, dtype=np.float64) * scale
+        tris = np.asarray(mesh.triangles, dtype=np.int64).copy()
+        if self.closed:
+            a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
+            vol = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
+            if vol < 0:  # inward-facing: flip so that normals point out
+                tris = tris[:, [0, 2, 1]]
+        self.vertices = verts
+        self.triangles = tris
+        self.source = mesh
+        self._wp_mesh = {}
+        super().__init__(position, rotation, motion, friction, restitution, name or mesh.name)
+
+    @property
+    def num_triangles(self) -> int:
+        return len(self.triangles)
+
+    def wp_mesh(self, device):
+        """The `wp.Mesh` of the local-frame vertices on ``device`` (built once per device)."""
+        import warp as wp
+
+        key = str(wp.get_device(device))
+        if key not in self._wp_mesh:
+            pts = wp.array(self.vertices, dtype=wp.vec3, device=device)
+            idx = wp.array(self.triangles.astype(np.int32).reshape(-1), dtype=wp.int32, device=device)
+            self._wp_mesh[key] = wp.Mesh(points=pts, indices=idx)
+        return self._wp_mesh[key]
+
+    def _size(self):
+        return tuple(0.5 * (self.vertices.max(axis=0) - self.vertices.min(axis=0)))
+
+    def _center(self):
+        return tuple(0.5 * (self.vertices.max(axis=0) + self.vertices.min(axis=0)))
+
+    def _local_sdf(self, p):
+        from .mesh_contact import mesh_signed_distance
+
+        return mesh_signed_distance(self, p)
+
+    def _usd_geometry(self, stage, path):
+        from pxr import UsdGeom, Vt
+
+        m = UsdGeom.Mesh.Define(stage, f"{path}/geom")
+        m.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(self.vertices.astype(np.float32)))
+        m.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(self.triangles), 3, np.int32)))
+        m.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(self.triangles.astype(np.int32).reshape(-1)))
+        m.CreateExtentAttr([tuple(self.vertices.min(axis=0)), tuple(self.vertices.max(axis=0))])
+        m.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        m.CreateDoubleSidedAttr(not self.closed)
+        return m

@@ -1,0 +1,56 @@
+"""The contact response shared by every obstacle kind (Warp functions; no kernels here).
+
+The impulse method of the notes (``physics.md`` section 2.17, L2670-2691), applied to the velocity
+relative to the obstacle's own surface velocity ``v_s``, with outward unit normal ``N``:
+
+    v_r = v - v_s;   if v_r . N < 0:
+        v_N = (v_r . N) N,   v_T = v_r - v_N
+        a   = max(1 - mu_T (1 + mu_N) |v_N| / |v_T|, 0)         (a = 0 when |v_T| ~ 0)
+        v  <- v_s - mu_N v_N + a v_T
+
+``a = 0`` is static friction (the tangential relative velocity vanishes: stick); ``0 < a < 1`` is
+sliding friction, whose tangential change ``(1 - a)|v_T|`` equals ``mu_T`` times the normal change
+``(1 + mu_N)|v_N|`` (Coulomb). The same factor ``a`` scales the vertex's tangential displacement
+relative to the obstacle over the step, so that positions agree with velocities: a sticking vertex
+does not creep, and one on a moving obstacle is carried along with it.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+
+@wp.func
+def impulse(v: wp.vec3, vs: wp.vec3, n: wp.vec3, mu_n: float, mu_t: float):
+    """(new velocity, tangential factor a). ``a = 1`` means no impulse (separating)."""
+    vr = v - vs
+    vn = wp.dot(vr, n)
+    if vn >= 0.0:
+        return v, 1.0
+    v_n = vn * n
+    v_t = vr - v_n
+    lt = wp.length(v_t)
+    a = float(1.0)
+    if mu_t > 0.0:
+        a = 0.0
+        if lt > 1.0e-12:
+            a = wp.max(1.0 - mu_t * (1.0 + mu_n) * (-vn) / lt, 0.0)
+    return vs - mu_n * v_n + a * v_t, a
+
+
+@wp.func
+def respond(p0: wp.vec3, p1: wp.vec3, n: wp.vec3, T0: wp.transform, T1: wp.transform,
+            v: wp.vec3, dt: float, mu_n: float, mu_t: float):
+    """Velocity impulse and matching tangential position change for a vertex in contact.
+
+    ``p0``, ``p1``: start / (projected) end position in the obstacle frame at t0 / t1; ``n``: the
+    local outward normal at ``p1``. Returns (world end position, world velocity).
+    """
+    nw = wp.transform_vector(T1, n)
+    x1 = wp.transform_point(T1, p1)
+    vs = (x1 - wp.transform_point(T0, p1)) / dt  # surface velocity of the material point at x1
+    vnew, a = impulse(v, vs, nw, mu_n, mu_t)
+    d = p1 - p0
+    d_t = d - wp.dot(d, n) * n
+    q = p1 - (1.0 - a) * d_t
+    return wp.transform_point(T1, q), vnew

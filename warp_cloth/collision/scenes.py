@@ -1,0 +1,152 @@
+"""Contact scenes: ``drape``, ``table``, ``spin`` and ``mesh`` (``warp-cloth run NAME``).
+
+Same keyword style as `warp_cloth.scenes.hanging`: SI units, real-cloth defaults (a free 1 m sheet
+of 0.15 kg/m^2 with 1000 N/m springs), ``solver=`` any of `warp_cloth.solvers.available()`, and the
+contact options ``thickness`` (m), ``friction`` (mu_T) and ``restitution`` (mu_N). Each returns a
+`Scene` whose solver carries an `ObstacleContact` (after any ``corrections`` given) and whose
+obstacles are written to the USD stage.
+
+- ``drape``: a sheet falls onto a sphere (r = 0.3 m) and drapes over it.
+- ``table``: a sheet falls on a table (a box, top at 0.75 m) with most of it over the edge, and
+  slides off onto the floor (low friction).
+- ``spin``: a sheet drapes over a sphere that starts spinning about the vertical at ``start`` s;
+  friction carries the cloth round.
+- ``mesh``: a sheet falls onto a torus (``assets/torus.obj``, 960 triangles) that then slides and
+  tilts along a keyframed path.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from ..mesh import TriMesh
+from ..model import DEFAULT_DENSITY, DEFAULT_STRETCH_STIFFNESS, ClothModel
+from ..scenes import _finish, _grid_shape
+from .contact import DEFAULT_THICKNESS, ObstacleContact
+from .motion import KeyframePath, Motion, quat_from_axis_angle
+from .obstacles import Box, MeshObstacle, Plane, Sphere
+
+__all__ = ["drape", "table", "spin", "mesh", "sheet_model", "asset_path"]
+
+ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
+                      "assets")
+
+
+def asset_path(name: str) -> str:
+    """Path of a file in the repository's ``assets/`` folder."""
+    p = os.path.join(ASSETS, name)
+    if not os.path.isfile(p):
+        raise ValueError(f"asset {name!r} not found in {ASSETS}; run python assets/make_assets.py")
+    return p
+
+
+def sheet_model(*, res: int = 32, shape=None, size: float = 1.0, height: float = 1.0,
+                center=(0.0, 0.0), stiffness: float = DEFAULT_STRETCH_STIFFNESS,
+                density: float = DEFAULT_DENSITY, bending: str = "none",
+                bend_stiffness: float = 0.0, shear_stiffness: float = 0.0, damping: float = 0.1,
+                spring_damping: float = 0.0, device=None, **model_options) -> ClothModel:
+    """A free (unpinned) horizontal ``size`` m sheet at ``height`` m centred at (x, z) = ``center``."""
+    nx, ny = _grid_shape(res, shape)
+    w, d = size, size * ny / nx
+    mesh = TriMesh.grid(nx, ny, size=(w, d), plane="xz",
+                        origin=(center[0] - 0.5 * w, height, center[1] - 0.5 * d), name="cloth")
+    return ClothModel(mesh, density=density, stretch_stiffness=stiffness,
+                      shear_stiffness=shear_stiffness, bending=bending,
+                      bend_stiffness=bend_stiffness, spring_damping=spring_damping,
+                      damping=damping, device=device, **model_options)
+
+
+def _contact_scene(model, obstacles, *, solver, solver_options, fps, frames, substeps,
+                   corrections, extra_obstacles, strain_bound, name, thickness, friction,
+                   restitution, ccd=True):
+    contact = ObstacleContact(model, obstacles, thickness=thickness, friction=friction,
+                              restitution=restitution, ccd=ccd)
+    scene = _finish(model, solver, solver_options, [*corrections, contact], fps, frames, substeps,
+                    [*obstacles, *extra_obstacles], strain_bound, name)
+    scene.contact = contact
+    return scene
+
+
+def drape(*, solver: str = "explicit", solver_options: dict | None = None, fps: float = 60.0,
+          frames: int = 120, substeps=None, corrections=(), obstacles=(),
+          strain_bound: float = 10.0, radius: float = 0.3, sphere_center=(0.0, 0.5, 0.0),
+          ground: bool = False, thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
+          restitution: float = 0.0, height: float = 0.9, **model_args):
+    """A sheet dropped from ``height`` m onto a sphere of ``radius`` m (and a floor if
+    ``ground``). ``obstacles`` are extra obstacles for the USD stage only."""
+    model = sheet_model(height=height, **model_args)
+    obs = [Sphere(radius, sphere_center)]
+    if ground:
+        obs.append(Plane())
+    return _contact_scene(model, obs, solver=solver, solver_options=solver_options, fps=fps,
+                          frames=frames, substeps=substeps, corrections=corrections,
+                          extra_obstacles=obstacles, strain_bound=strain_bound, name="drape",
+                          thickness=thickness, friction=friction, restitution=restitution)
+
+
+def table(*, solver: str = "explicit", solver_options: dict | None = None, fps: float = 60.0,
+          frames: int = 180, substeps=None, corrections=(), obstacles=(),
+          strain_bound: float = 10.0, table_size=(0.8, 0.75, 0.6), overhang: float = 0.45,
+          thickness: float = DEFAULT_THICKNESS, friction: float = 0.15,
+          restitution: float = 0.0, height: float = 0.85, **model_args):
+    """A sheet dropped on a table (box ``table_size`` = width x height x depth, m) with its centre
+    ``overhang`` m past the table's centre along +x, so that it slides off onto the floor."""
+    w, h, d = (float(c) for c in table_size)
+    if min(w, h, d) <= 0:
+        raise ValueError(f"table_size must be positive, got {table_size}")
+    model = sheet_model(height=height, center=(overhang, 0.0), **model_args)
+    obs = [Box((0.5 * w, 0.5 * h, 0.5 * d), (0.0, 0.5 * h, 0.0), name="table"), Plane()]
+    return _contact_scene(model, obs, solver=solver, solver_options=solver_options, fps=fps,
+                          frames=frames, substeps=substeps, corrections=corrections,
+                          extra_obstacles=obstacles, strain_bound=strain_bound, name="table",
+                          thickness=thickness, friction=friction, restitution=restitution)
+
+
+def spin(*, solver: str = "explicit", solver_options: dict | None = None, fps: float = 60.0,
+         frames: int = 180, substeps=None, corrections=(), obstacles=(),
+         strain_bound: float = 10.0, radius: float = 0.3, sphere_center=(0.0, 0.5, 0.0),
+         spin_rate: float = 3.0, start: float = 1.0, ramp: float = 0.5,
+         thickness: float = DEFAULT_THICKNESS, friction: float = 0.6,
+         restitution: float = 0.0, height: float = 0.85, **model_args):
+    """A sheet drapes over a sphere that starts spinning about +y at ``start`` s, reaching
+    ``spin_rate`` rad/s after ``ramp`` s; friction carries the cloth round."""
+    model = sheet_model(height=height, **model_args)
+    ball = Sphere(radius, sphere_center, name="ball",
+                  motion=Motion(angular_velocity=(0.0, spin_rate, 0.0), start=start, ramp=ramp))
+    return _contact_scene(model, [ball], solver=solver, solver_options=solver_options, fps=fps,
+                          frames=frames, substeps=substeps, corrections=corrections,
+                          extra_obstacles=obstacles, strain_bound=strain_bound, name="spin",
+                          thickness=thickness, friction=friction, restitution=restitution)
+
+
+def torus_path(rest: float = 0.8, move: float = 1.2, back: float = 1.0) -> KeyframePath:
+    """The mesh scene's path: rest, then slide 0.3 m along +x while tilting 25 degrees about z,
+    then come back level and rise 0.1 m."""
+    t0, t1, t2 = rest, rest + move, rest + move + back
+    tilt = quat_from_axis_angle((0, 0, 1), math.radians(25.0))
+    level = np.array([0.0, 0.0, 0.0, 1.0])
+    return KeyframePath(times=[0.0, t0, t1, t2],
+                        offsets=[[0, 0, 0], [0, 0, 0], [0.3, 0, 0], [0.0, 0.1, 0.0]],
+                        rotations=[level, level, tilt, level])
+
+
+def mesh(*, solver: str = "explicit", solver_options: dict | None = None, fps: float = 60.0,
+         frames: int = 180, substeps=None, corrections=(), obstacles=(),
+         strain_bound: float = 10.0, mesh_file: str | None = None, scale: float = 1.0,
+         position=(0.0, 0.45, 0.0), path: KeyframePath | None = None, ground: bool = True,
+         thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
+         restitution: float = 0.0, height: float = 0.65, **model_args):
+    """A sheet dropped on a triangle-mesh obstacle (default ``assets/torus.obj``) that moves along
+    a keyframed ``path`` (default `torus_path`), over a floor if ``ground``."""
+    model = sheet_model(height=height, **model_args)
+    ob = MeshObstacle(mesh_file or asset_path("torus.obj"), position=position, scale=scale,
+                      motion=Motion(path=path if path is not None else torus_path()),
+                      name="torus" if mesh_file is None else None)
+    obs = [ob] + ([Plane()] if ground else [])
+    return _contact_scene(model, obs, solver=solver, solver_options=solver_options, fps=fps,
+                          frames=frames, substeps=substeps, corrections=corrections,
+                          extra_obstacles=obstacles, strain_bound=strain_bound, name="mesh",
+                          thickness=thickness, friction=friction, restitution=restitution)
