@@ -1,0 +1,377 @@
+"""Implicit Euler by Newton (physics.md 2.3-2.5; T2-T5, T9-T14).
+
+Tolerances: positions are float32, so the implicit-Euler residual cannot drop below about
+``1e-7 |x| k dt^2/m`` metres; the scenes here keep that floor far below the tolerances asserted.
+Finite-difference Hessian checks use central differences with h = 1e-3 m on 0.1 m springs in
+float32 (truncation and rounding both about 1e-4 relative; asserted at 2e-3).
+"""
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warp_cloth.diagnostics import Meter
+from warp_cloth.model import PinPath
+from warp_cloth.scenes import hanging_model
+from warp_cloth.solvers import implicit as imp
+from warp_cloth.solvers.explicit import SymplecticEuler
+from warp_cloth.solvers.implicit import ImplicitEuler, jacobi_spectral_radius
+from warp_cloth.solvers.linear import dense_matrix, make_linear_solver
+
+
+def _host_forces(model, x):
+    """float64 spring forces + gravity (+ quadratic bending) on the host."""
+    x = np.asarray(x, dtype=np.float64)
+    p = model.spring_pairs
+    d = x[p[:, 0]] - x[p[:, 1]]
+    ln = np.linalg.norm(d, axis=1)
+    fi = -(model.spring_stiffness * (ln - model.spring_rest) / ln)[:, None] * d
+    f = np.zeros_like(x)
+    np.add.at(f, p[:, 0], fi)
+    np.add.at(f, p[:, 1], -fi)
+    f += model.masses[:, None] * np.asarray(model.gravity)
+    for t in model.force_terms:
+        if t.name == "quadratic":
+            f -= t.dense_q() @ x
+    return f
+
+
+def _residual(model, x0, v0, x1, dt):
+    """max_i |x1 - x0 - dt v0 - dt^2 f(x1)/m| over free vertices (float64)."""
+    r = x1 - x0 - dt * v0 - dt * dt * _host_forces(model, x1) / model.masses[:, None]
+    return np.abs(r[model.inverse_masses > 0]).max()
+
+
+def _begin(solver, state, dt):
+    """Start a step by hand (as `_advance` does) so a test can inspect the Newton system."""
+    m = solver.model
+    solver._scale, solver._dt2 = 1.0 / dt**2, dt * dt
+    solver.A.mass_scale = solver._scale
+    wp.launch(imp.begin_step_kernel, m.num_vertices,
+              [state.x, state.v, m.mass, m.inv_mass, wp.vec3(*m.gravity), dt, 1, solver.f_ext,
+               solver.x_prev, solver.x_hat])
+
+
+@pytest.mark.parametrize("bending", ["none", "quadratic"])
+def test_converged_step_satisfies_implicit_euler(bending):
+    """T3: x1 - x0 - dt v0 - dt^2 M^-1 f(x1) is below the tolerance at a converged step."""
+    m = hanging_model(res=6, stiffness=200.0, bending=bending, bend_stiffness=1e-3, damping=0.0,
+                      device="cpu")
+    tol = 1e-5  # the float32 floor here is about 1e-7 * 1 m * k dt^2/m = 2e-6 m
+    s = ImplicitEuler(m, tolerance=tol, newton_iterations=20, linear_tolerance=1e-6,
+                      linear_iterations=500)
+    st = m.state()
+    dt = 1.0 / 60.0
+    for _ in range(5):
+        x0, v0 = st.positions(), st.velocities()
+        s.step(st, dt)
+        assert s.stats["converged"]
+        assert s.stats["residual"] < tol
+        assert _residual(m, x0, v0, st.positions(), dt) < tol
+        # v1 = (x1 - x0) / dt (no damping)
+        assert np.allclose(st.velocities(), (st.positions() - x0) / dt, atol=1e-4)
+    assert np.abs(st.velocities()).max() > 0.1  # it really moved
+
+
+def test_one_newton_step_leaves_a_larger_residual():
+    """T5: Baraff-Witkin's single linear solve is not converged; the residual grows with dt."""
+    m = hanging_model(res=6, stiffness=1000.0, device="cpu")
+    res = {}
+    for dt in (1 / 240, 1 / 30):
+        st = m.state()
+        one = ImplicitEuler(m, newton_iterations=1, initial_guess="start", tolerance=1e-7,
+                            linear_tolerance=1e-6, linear_iterations=500)
+        one.step(st, dt)
+        res[dt] = one.stats["residual"]
+        assert one.stats["newton_iterations"] == 1 and not one.stats["converged"]
+    assert res[1 / 30] > res[1 / 240] > 1e-7
+    st = m.state()
+    full = ImplicitEuler(m, newton_iterations=30, tolerance=1e-5, linear_tolerance=1e-5)
+    full.step(st, 1 / 30)
+    # converged down to the float32 floor (about 1e-7 * 1 m * k dt^2/m = 4e-5 m here)
+    assert full.stats["residual"] < 1e-4 < 1e-2 * res[1 / 30]
+
+
+def test_objective_decreases_every_newton_iteration():
+    """T4: F(x^(k)) decreases each Newton iteration and the updates shrink."""
+    m = hanging_model(res=8, stiffness=1000.0, damping=0.0, device="cpu")
+    st = m.state()
+    plain = ImplicitEuler(m, tolerance=None, newton_iterations=5, linear_tolerance=1e-5,
+                          linear_iterations=500, trace=True)
+    for _ in range(4):
+        plain.step(st, 1 / 30)  # a falling, swinging sheet, large steps
+    tr = plain.stats["trace"]
+    F = [t["F"] for t in tr]
+    assert F[1] < F[0] - 1e-6 * abs(F[0])
+    for a, b in zip(F, F[1:]):
+        assert b < a + 1e-9 * abs(a)  # strictly until the float32 noise of F (~1e-9 relative)
+    dxs = [t["dx"] for t in tr if "dx" in t]
+    assert dxs[-1] < 0.1 * dxs[0]
+    # a hard start (15 % stretch, dt = 1/30 s): full Newton steps overshoot, the line search keeps
+    # F decreasing every iteration
+    st = m.state()
+    x = m.mesh.vertices.copy()
+    x[:, 0] *= 1.15
+    st.x.assign(x)
+    ls = ImplicitEuler(m, newton_iterations=10, tolerance=1e-5, linear_tolerance=1e-5,
+                       linear_iterations=500, trace=True, line_search=True)
+    ls.step(st, 1 / 30)
+    F = [t["F"] for t in ls.stats["trace"]]
+    assert len(F) >= 5
+    for a, b in zip(F, F[1:]):
+        assert b < a + 1e-9 * abs(a)
+    assert F[-1] < 0.25 * F[0]
+
+
+def _blocks(xi, xj, rest, k, definite):
+    m = len(xi)
+    springs = wp.array(np.stack([np.arange(m), m + np.arange(m)], 1).astype(np.int32), ndim=2)
+    x = wp.array(np.concatenate([xi, xj]), dtype=wp.vec3)
+    blocks = wp.zeros(m, dtype=wp.mat33)
+    wp.launch(imp.spring_newton_kernel, m,
+              [x, springs, wp.array(rest, dtype=float), wp.array(np.full(m, k), dtype=float),
+               definite, wp.zeros(2 * m, dtype=wp.vec3), blocks, wp.zeros(2 * m, dtype=wp.mat33)])
+    return blocks.numpy().astype(np.float64)
+
+
+def test_spring_hessian_definiteness(rng):
+    """T9/T10: H_e PSD when stretched; eigenvalue k(1 - L/|x|) < 0 when compressed; the fix is PSD."""
+    n, k = 50, 300.0
+    xi = rng.standard_normal((n, 3))
+    xj = rng.standard_normal((n, 3))
+    ln = np.linalg.norm(xi - xj, axis=1)
+    stretched = _blocks(xi, xj, 0.8 * ln, k, 0)
+    for H, l in zip(stretched, ln):
+        ev = np.linalg.eigvalsh(H)
+        assert ev.min() >= -1e-4 * k
+        assert np.allclose(sorted(ev), sorted([k, k * (1 - 0.8), k * (1 - 0.8)]), rtol=1e-4)
+    rest = 1.5 * ln
+    for H, l in zip(_blocks(xi, xj, rest, k, 0), ln):
+        ev = np.linalg.eigvalsh(H)
+        assert ev.min() == pytest.approx(k * (1 - 1.5), rel=1e-4)  # predicted negative eigenvalue
+        assert ev.max() == pytest.approx(k, rel=1e-4)
+    for H in _blocks(xi, xj, rest, k, 1):
+        ev = np.linalg.eigvalsh(H)
+        assert ev.min() >= -1e-4 * k and ev.max() == pytest.approx(k, rel=1e-4)
+
+
+@pytest.mark.parametrize("bending", ["none", "quadratic"])
+def test_hessian_vector_products_match_gradient_differences(rng, bending):
+    """The assembled A = M/dt^2 + H times v equals -(b(x + h v) - b(x - h v))/(2h) (exact Hessian)."""
+    m = hanging_model(res=5, stiffness=500.0, bending=bending, bend_stiffness=0.01, device="cpu")
+    s = ImplicitEuler(m, exact_hessian=True)
+    st = m.state()
+    dt = 1 / 60
+    _begin(s, st, dt)
+    x = m.mesh.vertices + 0.01 * rng.standard_normal(m.mesh.vertices.shape)  # mixed stretch/compress
+    free = m.inverse_masses > 0
+    s._assemble(wp.array(x, dtype=wp.vec3), 0)
+    A = dense_matrix(s.A)
+    assert np.allclose(A, A.T, atol=1e-3 * np.abs(A).max())
+    v = rng.standard_normal(x.shape)
+    v[~free] = 0.0
+    h = 1e-3
+
+    def b_at(y):
+        s._assemble(wp.array(y, dtype=wp.vec3), 0)
+        return s.b.numpy().astype(np.float64)
+
+    fd = -(b_at(x + h * v) - b_at(x - h * v)) / (2 * h)
+    av = (A @ v.reshape(-1)).reshape(-1, 3)
+    err = np.abs(fd - av)[free].max() / np.abs(av[free]).max()
+    assert err < 2e-3
+
+
+def _newton_system(res=5, stiffness=1000.0, steps=3):
+    m = hanging_model(res=res, stiffness=stiffness, device="cpu")
+    s = ImplicitEuler(m)
+    st = m.state()
+    for _ in range(steps):
+        s.step(st, 1 / 120)
+    _begin(s, st, 1 / 120)
+    s._assemble(st.x, 0)
+    return m, s
+
+
+def test_inner_solvers_match_dense_solve():
+    m, s = _newton_system()
+    free = np.repeat(m.inverse_masses > 0, 3)
+    A = dense_matrix(s.A)
+    b = s.b.numpy().astype(np.float64).reshape(-1)
+    ref = np.zeros_like(b)
+    ref[free] = np.linalg.solve(A[np.ix_(free, free)], b[free])
+    rho, lo, hi = jacobi_spectral_radius(s.A, 0.66)
+    for name, opts in (("cg", {}), ("jacobi", {}), ("chebyshev", {"rho": rho})):
+        dx = wp.zeros(m.num_vertices, dtype=wp.vec3)
+        info = make_linear_solver(name, iterations=20000, tolerance=1e-6, **opts).solve(
+            s.A, s.b, dx)
+        assert info["converged"], name
+        got = dx.numpy().reshape(-1)
+        assert np.abs(got - ref).max() < 1e-3 * np.abs(ref).max(), name
+        assert np.all(got[~free] == 0.0)  # pins eliminated
+
+
+def test_lanczos_spectral_radius_matches_dense():
+    m, s = _newton_system(res=5)
+    A = dense_matrix(s.A)
+    free = np.repeat(m.inverse_masses > 0, 3)
+    Af = A[np.ix_(free, free)]
+    D = np.zeros_like(Af)
+    for i in range(0, len(Af), 3):
+        D[i : i + 3, i : i + 3] = Af[i : i + 3, i : i + 3]
+    ev = np.linalg.eigvals(np.linalg.solve(D, Af)).real
+    exact = np.abs(1 - 0.66 * ev).max()
+    rho, lo, hi = jacobi_spectral_radius(s.A, 0.66, iterations=60)
+    assert rho == pytest.approx(exact, abs=2e-3 * (1 - exact) + 1e-5)
+    assert lo == pytest.approx(ev.min(), rel=0.05) and hi == pytest.approx(ev.max(), rel=1e-3)
+
+
+def test_chebyshev_needs_fewer_iterations_than_jacobi():
+    """T14 on the hanging cloth's Newton system: same relative residual, >= 5x fewer iterations."""
+    m, s = _newton_system(res=12)
+    rho = jacobi_spectral_radius(s.A, 0.66)[0]
+    its = {}
+    for name, opts in (("jacobi", {}), ("chebyshev", {"rho": rho})):
+        dx = wp.zeros(m.num_vertices, dtype=wp.vec3)
+        info = make_linear_solver(name, iterations=20000, tolerance=1e-4, **opts).solve(
+            s.A, s.b, dx)
+        assert info["converged"]
+        its[name] = info["iterations"]
+    assert its["chebyshev"] * 5 <= its["jacobi"]
+
+
+def test_implicit_is_stable_where_explicit_diverges():
+    """T1/T2: at dt = 1/60 s with 5000 N/m springs symplectic Euler explodes, backward Euler not."""
+    m = hanging_model(res=8, stiffness=5000.0, device="cpu")
+    dt = 1 / 60
+    assert dt > SymplecticEuler.stable_dt(m)
+    st = m.state()
+    ex = SymplecticEuler(m)
+    for _ in range(60):
+        ex.step(st, dt)
+    x = st.positions()
+    assert not np.all(np.isfinite(x)) or np.abs(x).max() > 100.0
+    st = m.state()
+    im = ImplicitEuler(m)
+    meter = Meter(m)
+    for _ in range(60):
+        im.step(st, dt)
+        mm = meter(st)
+        assert mm.finite and mm.max_strain < 0.05
+    assert st.positions()[:, 1].min() < 0.6  # it fell and hangs
+
+
+def test_energy_does_not_increase_without_damping():
+    """T2: no damping, converged Newton: kinetic + potential energy never grows (within 1e-6 J)."""
+    m = hanging_model(res=6, stiffness=500.0, damping=0.0, device="cpu")
+    s = ImplicitEuler(m, tolerance=1e-6, newton_iterations=20, linear_tolerance=1e-6,
+                      linear_iterations=500)
+    st = m.state()
+    meter = Meter(m)
+    e = [meter(st).energy]
+    for _ in range(60):
+        s.step(st, 1 / 60)
+        e.append(meter(st).energy)
+    e = np.array(e)
+    assert np.all(np.diff(e) < 1e-6)
+    assert e[-1] < e[0] - 1e-3  # and it does dissipate (implicit Euler "vanishes", L923)
+
+
+def test_scripted_pins_are_eliminated_and_followed():
+    m0 = hanging_model(res=6, device="cpu")
+    p0 = m0.mesh.vertices[m0.pins]
+    path = PinPath([0.0, 0.5], [p0, p0 + [0.0, 0.2, 0.1]])
+    m = hanging_model(res=6, stiffness=200.0, device="cpu", pin_path=path)
+    s = ImplicitEuler(m, tolerance=1e-5, newton_iterations=20, linear_tolerance=1e-6)
+    st = m.state()
+    dt = 1 / 60
+    for k in range(10):
+        x0, v0 = st.positions(), st.velocities()
+        s.step(st, dt)
+        target = p0 + (k + 1) * dt / 0.5 * np.array([0.0, 0.2, 0.1])
+        assert np.allclose(st.positions()[m.pins], target, atol=1e-5)
+        assert np.allclose(st.velocities()[m.pins], [0.0, 0.2 / 0.5, 0.1 / 0.5], atol=1e-3)
+        # the residual (free vertices) is computed with the pins at their targets
+        assert s.stats["converged"]
+        assert _residual(m, x0, v0, st.positions(), dt) < 1e-5
+
+
+def test_fixed_iterations_are_capturable_and_replay_identically():
+    m = hanging_model(res=6, bending="dihedral", bend_stiffness=1e-3, device="cpu")
+    opts = dict(tolerance=None, linear_tolerance=None, newton_iterations=2, linear_iterations=20)
+    for lin in ("cg", "chebyshev"):
+        a = ImplicitEuler(m, linear=lin, **opts)
+        assert a.capturable
+        sa = m.state()
+        a.step(sa, 1 / 120)  # chebyshev measures rho here (host work, before capture)
+        sb = sa.clone()
+        with wp.ScopedCapture(device="cpu", force_module_load=False) as cap:
+            a.step(sa, 1 / 120)
+        wp.capture_launch(cap.graph)
+        b = ImplicitEuler(m, linear=lin, **opts)
+        if lin == "chebyshev":
+            b.linear.rho = a.linear.rho
+            b._rho_dt = 1 / 120
+        b.step(sb, 1 / 120)  # recording does not run the launches: sa has taken 2 steps
+        assert np.abs(sa.positions() - m.mesh.vertices).max() > 1e-4
+        assert np.allclose(sa.positions(), sb.positions(), atol=1e-6)
+        assert a.stats["inner_iterations"] == 40
+    assert not ImplicitEuler(m).capturable  # tolerances mean host reads
+    assert not ImplicitEuler(m, tolerance=None).capturable
+
+
+def test_dihedral_bending_and_wind_with_implicit():
+    from warp_cloth.forces.wind import Wind
+
+    m = hanging_model(res=6, bending="dihedral", bend_stiffness=5e-3, wind=Wind(velocity=(4, 0, 0)),
+                      device="cpu")
+    s = ImplicitEuler(m)
+    assert [t.name for t in s.implicit_terms] == ["dihedral"]
+    assert [t.name for t in s.explicit_terms] == ["wind"]
+    st = m.state()
+    for _ in range(20):
+        s.step(st, 1 / 60)
+    x = st.positions()
+    assert np.all(np.isfinite(x)) and s.stats["converged"]
+    assert x[:, 0].mean() > m.mesh.vertices[:, 0].mean() + 0.01  # blown along +x
+
+
+def test_line_search_and_stats():
+    m = hanging_model(res=5, device="cpu")
+    s = ImplicitEuler(m, line_search=True, linear="jacobi")
+    st = m.state()
+    s.step(st, 1 / 60)
+    for key in ("newton_iterations", "inner_iterations", "residual"):
+        assert key in s.stats
+    assert s.stats["inner_iterations"] > 0 and math.isfinite(s.stats["residual"])
+    f = ImplicitEuler(m, tolerance=None, linear_tolerance=None, measure_residual=True)
+    f.step(st, 1 / 60)
+    assert math.isfinite(f.stats["residual"])
+
+
+@pytest.mark.parametrize("opts, match", [
+    ({"newton_iterations": 0}, "newton_iterations"),
+    ({"tolerance": -1.0}, "tolerance"),
+    ({"linear": "gmres"}, "linear solver"),
+    ({"rho": 1.5, "linear": "chebyshev"}, "rho"),
+    ({"initial_guess": "zero"}, "initial_guess"),
+    ({"linear_iterations": 0}, "iterations"),
+    ({"step_tolerance": -1.0}, "step_tolerance"),
+])
+def test_bad_options(opts, match):
+    m = hanging_model(res=3, device="cpu")
+    with pytest.raises(ValueError, match=match):
+        ImplicitEuler(m, **opts)
+
+
+def test_cli_runs_implicit_end_to_end(tmp_path):
+    from warp_cloth.cli import main
+
+    for lin, bend in (("jacobi", "springs"), ("chebyshev", "dihedral"), ("cg", "quadratic")):
+        out = tmp_path / f"{lin}.usd"
+        rc = main(["run", "hanging", "--solver", "implicit", "--linear", lin, "--newton-iterations",
+                   "3", "--bending", bend, "--bend-stiffness", "0.001", "--res", "6", "--frames",
+                   "4", "--quiet", "--out", str(out)])
+        assert rc == 0 and out.exists()
