@@ -74,7 +74,7 @@ import numpy as np
 import warp as wp
 
 from ..forces.springs import SpringForce
-from ..limits import edge_projection
+from ..limits import color_constraints, edge_projection
 from .base import Solver
 
 __all__ = ["PositionBased", "color_constraints"]
@@ -219,23 +219,6 @@ def velocity_kernel(
 
 
 # ---------------------------------------------------------------------------- set-up helpers
-def color_constraints(pairs: np.ndarray, num_vertices: int) -> np.ndarray:
-    """Greedy colouring: ``colors[c]`` is the smallest colour used by neither vertex of ``c``.
-
-    Within a colour no two constraints share a vertex, so a colour can be projected in parallel
-    and gives the same result as projecting its constraints one after another.
-    """
-    used = [0] * num_vertices  # bit mask of the colours at each vertex
-    colors = np.empty(len(pairs), dtype=np.int64)
-    for c, (i, j) in enumerate(pairs.tolist()):
-        m = used[i] | used[j]
-        k = (~m & (m + 1)).bit_length() - 1  # lowest zero bit
-        colors[c] = k
-        used[i] |= 1 << k
-        used[j] |= 1 << k
-    return colors
-
-
 def _check_compliance(name, value, allow_springs: bool):
     if value is None:
         return None
