@@ -21,7 +21,7 @@ from __future__ import annotations
 import warp as wp
 
 from .motion import KIND_BOX, KIND_PLANE, KIND_SPHERE, ObstacleData
-from .response import respond
+from .response import position_friction, respond
 
 
 @wp.func
@@ -135,6 +135,7 @@ def analytic_contact_kernel(
         if phi >= reach and (ccd == 0 or (phi - thickness) * (phi - thickness) >= wp.dot(d, d)):
             continue
         moved = False
+        p_in = p1
         if ccd != 0 and ob.kind != KIND_PLANE:
             hit, h, nh = shape_ccd(ob.kind, ob.size, thickness, p0, p1)
             if hit:
@@ -148,6 +149,8 @@ def analytic_contact_kernel(
             x1, vi = respond(p0, p1, n, poses[j], poses[j + 1], vi, dt, ob.restitution,
                              ob.friction)
         elif moved:
+            if ob.friction > 0.0:
+                p1 = position_friction(p0, p_in, p1, n, ob.friction)
             x1 = wp.transform_point(poses[j + 1], p1)
     x[i] = x1
     if respond_velocity != 0:

@@ -33,8 +33,11 @@ vertex into each other (the last one wins).
   dt)` runs after the solve: it projects positions and applies the impulse to the velocities, so
   the state leaves the step consistent (``v . N >= 0`` relative to the obstacle).
 - position-based: the solver calls `project_positions(x, x_start, dt)` inside each of its
-  constraint iterations (non-penetration as a constraint among the others, with the continuous
-  test against ``x_start``), and `apply` after its velocity update adds restitution and friction.
+  constraint iterations: non-penetration as a constraint among the others (with the continuous
+  test against ``x_start``) plus position-level Coulomb friction (the tangential displacement
+  relative to the obstacle is removed up to ``mu_T`` times the normal correction: static and
+  sliding, the same threshold ``tan(angle) = mu_T`` on an incline). `apply` after its velocity
+  update then adds restitution to vertices still approaching (and their friction impulse).
   Pass ``time=state.time`` to `project_positions` when possible; without it the contact uses its
   own clock, which `apply` advances (correct for steps run back to back from time 0).
 

@@ -27,7 +27,7 @@ import numpy as np
 import warp as wp
 
 from .motion import ObstacleData
-from .response import respond
+from .response import position_friction, respond
 
 
 @wp.func
@@ -122,6 +122,7 @@ def mesh_contact_kernel(
         if not found:
             continue  # no surface within reach of the end, so the path cannot cross one
         moved = False
+        p_in = p1
         if ccd != 0 and (phi < 0.0 or phi < len_d):
             ray = wp.mesh_query_ray(mid, p0, d, 1.0)
             if ray.result:
@@ -144,6 +145,8 @@ def mesh_contact_kernel(
             x1, vi = respond(p0, p1, n, poses[j], poses[j + 1], vi, dt, ob.restitution,
                              ob.friction)
         elif moved:
+            if ob.friction > 0.0:
+                p1 = position_friction(p0, p_in, p1, n, ob.friction)
             x1 = wp.transform_point(poses[j + 1], p1)
     x[i] = x1
     if respond_velocity != 0:

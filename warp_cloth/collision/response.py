@@ -54,3 +54,20 @@ def respond(p0: wp.vec3, p1: wp.vec3, n: wp.vec3, T0: wp.transform, T1: wp.trans
     d_t = d - wp.dot(d, n) * n
     q = p1 - (1.0 - a) * d_t
     return wp.transform_point(T1, q), vnew
+
+
+@wp.func
+def position_friction(p0: wp.vec3, p_in: wp.vec3, p_out: wp.vec3, n: wp.vec3, mu_t: float):
+    """Coulomb friction at the position level (for `project_positions`, inside position-based
+    iterations, where velocities are not available; Macklin et al. 2014, *Unified Particle
+    Physics*, eq. 24): the projection moved the vertex by ``delta = |p_out - p_in|`` along the
+    normal; its tangential displacement relative to the obstacle since the start of the step,
+    ``d_T``, is removed if ``|d_T| <= mu_T delta`` (static) and shortened by ``mu_T delta``
+    otherwise (sliding). All in the obstacle's frame."""
+    d = p_out - p0
+    d_t = d - wp.dot(d, n) * n
+    lt = wp.length(d_t)
+    cap = mu_t * wp.length(p_out - p_in)
+    if lt <= cap:
+        return p_out - d_t
+    return p_out - (cap / lt) * d_t

@@ -1,0 +1,400 @@
+"""Obstacles and contact (issue 5): penetration, tunnelling, impulse properties (T43), friction on
+an incline, restitution, spinning sphere, scripted motion, USD output, scenes, argument checks."""
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warp_cloth import ClothModel, TriMesh, make_solver
+from warp_cloth.collision import (
+    PENETRATION_TOLERANCE, Box, KeyframePath, MeshObstacle, Motion, ObstacleContact, Plane,
+    Sphere, quat_from_axis_angle,
+)
+from warp_cloth.collision.scenes import asset_path, sheet_model
+from warp_cloth.scene import suggest_substeps
+from warp_cloth.solvers import available
+
+SOLVERS = available()
+
+
+def quad_mesh(size=1.0):
+    """An open, thin, two-triangle square in the local xz plane (normal +y)."""
+    h = 0.5 * size
+    v = np.array([[-h, 0, -h], [h, 0, -h], [h, 0, h], [-h, 0, h]], dtype=np.float64)
+    return TriMesh(v, np.array([[0, 2, 1], [0, 3, 2]]), name="quad")
+
+
+def particles(positions, velocities=None):
+    """Free particles: a small grid model with zero spring stiffness and no gravity whose first
+    ``len(positions)`` vertices are put at ``positions``; the others wait far away."""
+    positions = np.asarray(positions, dtype=np.float64)
+    n = len(positions)
+    side = max(1, int(math.ceil(math.sqrt(n))) - 1)
+    mesh = TriMesh.grid(side, side, size=1.0, plane="xz")
+    m = mesh.num_vertices
+    model = ClothModel(mesh, masses=np.full(m, 1e-3), stretch_stiffness=0.0, damping=0.0,
+                       gravity=(0, 0, 0))
+    st = model.state()
+    pos = 100.0 + np.arange(m)[:, None] * np.array([1.0, 0.0, 0.0]) + [0.0, 50.0, 0.0]
+    pos[:n] = positions
+    st.x.assign(pos.astype(np.float32))
+    vel = np.zeros((m, 3))
+    if velocities is not None:
+        vel[:n] = velocities
+    st.v.assign(vel.astype(np.float32))
+    return model, st
+
+
+def step_and_check(model, solver, contact, steps, dt, tol=PENETRATION_TOLERANCE):
+    st = model.state()
+    worst = math.inf
+    free = model.inverse_masses > 0
+    for _ in range(steps):
+        solver.step(st, dt)
+        phi = contact.signed_distances(st.positions()[free], st.t)
+        worst = min(worst, float(phi.min()))
+        assert worst >= -tol, f"a vertex is {-worst:.2e} m inside an obstacle"
+    return st, worst
+
+
+def solver_dt(solver, fps=60.0):
+    return 1.0 / (fps * suggest_substeps(solver, 1.0 / fps))
+
+
+# ------------------------------------------------------------------ no penetration after any step
+OBSTACLES = {
+    "sphere": lambda: [Sphere(0.25, (0.0, 0.35, 0.0))],
+    "box": lambda: [Box((0.2, 0.1, 0.15), (0.05, 0.5, 0.0), rotation=quat_from_axis_angle((0, 1, 0), 0.4))],
+    "plane": lambda: [Plane((0.2, 1.0, 0.0), (0.0, 0.55, 0.0))],
+    "mesh": lambda: [MeshObstacle(asset_path("torus.obj"), position=(0.0, 0.5, 0.0))],
+}
+
+
+@pytest.mark.parametrize("kind", list(OBSTACLES))
+def test_no_vertex_inside_after_each_step_explicit(kind):
+    model = sheet_model(res=12, size=0.7, height=0.64)
+    obs = OBSTACLES[kind]()
+    contact = ObstacleContact(model, obs)
+    solver = make_solver("explicit", model)
+    solver.add_correction(contact)
+    dt = solver_dt(solver)
+    st, worst = step_and_check(model, solver, contact, int(round(0.3 / dt)), dt)
+    # it did land on the obstacle: some vertex rests at the contact thickness
+    phi = contact.signed_distances(st.positions(), st.t).min(axis=0)
+    assert np.abs(phi - contact.thickness).min() < 1e-3
+    assert worst >= contact.thickness - 1e-3
+
+
+@pytest.mark.parametrize("solver_name", SOLVERS)
+def test_no_vertex_inside_sphere_every_solver(solver_name):
+    model = sheet_model(res=8, size=0.6, height=0.75)
+    contact = ObstacleContact(model, [Sphere(0.25, (0.0, 0.45, 0.0)), Plane()])
+    solver = make_solver(solver_name, model)
+    solver.add_correction(contact)
+    dt = solver_dt(solver)
+    steps = int(round(0.4 / dt))
+    st, _ = step_and_check(model, solver, contact, steps, dt)
+    # the cloth rests on the sphere top (0.7 + thickness), it did not fall through
+    assert st.positions()[:, 1].max() > 0.7
+
+
+def test_moving_obstacle_pushes_cloth_without_penetration():
+    model = sheet_model(res=8, size=0.5, height=0.6)
+    box = Box((0.3, 0.05, 0.3), (0.0, 0.3, 0.0), motion=Motion(linear_velocity=(0.0, 2.0, 0.0)))
+    contact = ObstacleContact(model, [box])
+    solver = make_solver("explicit", model)
+    solver.add_correction(contact)
+    dt = solver_dt(solver)
+    st, _ = step_and_check(model, solver, contact, int(round(0.3 / dt)), dt)
+    # the box top rose from 0.35 to 0.35 + 2 m/s * t, and carried the cloth up with it
+    top = 0.35 + 2.0 * st.t
+    assert st.positions()[:, 1].min() > top - 0.01
+    assert np.allclose(st.velocities()[:, 1].mean(), 2.0, atol=0.2)
+
+
+# ------------------------------------------------------------------ tunnelling (T45)
+@pytest.mark.parametrize("speed", [50.0, 2000.0])
+def test_fast_vertex_does_not_tunnel_through_thin_mesh(speed):
+    quad = MeshObstacle(quad_mesh(2.0))
+    assert not quad.closed
+    start = np.array([[0.1 * i - 0.3, 0.02, 0.05 * i] for i in range(9)])
+    dt = 1e-3  # each step moves speed * dt >> the 0.02 m gap
+    for ccd, through in ((True, False), (False, True)):
+        model, st = particles(start, np.tile([0.0, -speed, 0.0], (9, 1)))
+        contact = ObstacleContact(model, [quad], ccd=ccd, restitution=0.0, friction=0.0)
+        solver = make_solver("explicit", model)
+        solver.add_correction(contact)
+        solver.step(st, dt)
+        y = st.positions()[:, 1]
+        if through:  # the end-position test alone misses it (proves the case is a real tunnel)
+            assert (y < -0.5 * speed * dt).all()
+        else:
+            assert (y >= contact.thickness - PENETRATION_TOLERANCE).all()
+            assert (st.velocities()[:, 1] >= -1e-4).all()
+
+
+def test_fast_thin_mesh_does_not_pass_through_vertex():
+    """The obstacle moves, the vertex stands still: the relative path is tested."""
+    quad = MeshObstacle(quad_mesh(2.0), motion=Motion(linear_velocity=(0.0, 300.0, 0.0)))
+    model, st = particles(np.array([[0.0, 0.05, 0.0], [0.2, 0.1, 0.3]]))
+    contact = ObstacleContact(model, [quad])
+    solver = make_solver("explicit", model)
+    solver.add_correction(contact)
+    solver.step(st, 1e-3)  # the quad moves 0.3 m, from y = 0 to 0.3
+    y = st.positions()[:2, 1]
+    assert (y >= 0.3 + contact.thickness - 1e-4).all()
+    assert np.allclose(st.velocities()[:2, 1], 300.0, rtol=1e-3)
+
+
+@pytest.mark.parametrize("ob", [Sphere(0.05, (0.0, 0.0, 0.0)), Box((0.3, 0.002, 0.3), (0, 0, 0)),
+                                Plane((0, 1, 0), (0, 0, 0))], ids=["sphere", "thin_box", "plane"])
+def test_fast_vertex_does_not_pass_analytic_obstacles(ob):
+    model, st = particles(np.array([[0.0, 0.2, 0.0], [0.01, 0.3, -0.01]]),
+                          np.array([[0.0, -500.0, 0.0], [0.0, -800.0, 0.0]]))
+    contact = ObstacleContact(model, [ob], friction=0.0)
+    solver = make_solver("explicit", model)
+    solver.add_correction(contact)
+    solver.step(st, 1e-3)  # 0.5-0.8 m per step, through the whole obstacle
+    x = st.positions()
+    assert (x[:, 1] > 0).all(), "the vertex went through"
+    assert (ob.signed_distance(x, st.t) >= contact.thickness - PENETRATION_TOLERANCE).all()
+
+
+# ------------------------------------------------------------------ impulse properties (T43)
+@pytest.mark.parametrize("mu_n,mu_t", [(0.0, 0.0), (0.0, 0.5), (0.5, 0.3), (1.0, 1.0)])
+def test_impulse_properties(rng, mu_n, mu_t):
+    n_pts = 64
+    normal = np.array([0.3, 1.0, -0.2])
+    normal /= np.linalg.norm(normal)
+    plane = Plane(normal, (0.0, 0.1, 0.0), motion=Motion(linear_velocity=(0.4, 0.1, -0.3)))
+    dt = 1e-3
+    # end positions below the plane, start positions above, random velocities into it
+    base = rng.uniform(-0.5, 0.5, (n_pts, 3))
+    base -= np.outer((base - [0.0, 0.1, 0.0]) @ normal, normal)  # onto the plane at t = 0
+    x_end = plane.to_world(plane.to_local(base, 0.0), dt) - np.outer(rng.uniform(0, 0.01, n_pts), normal)
+    x_start = base + np.outer(rng.uniform(0.0, 0.005, n_pts), normal)
+    v = rng.normal(0, 1, (n_pts, 3))
+    model, st = particles(x_end, v)
+    xs_np = st.positions()
+    xs_np[:n_pts] = x_start
+    xs = wp.array(xs_np.astype(np.float32), dtype=wp.vec3)
+    v_before = st.velocities()[:n_pts]
+    contact = ObstacleContact(model, [plane], restitution=mu_n, friction=mu_t)
+    contact.apply(st, xs, dt)
+    x_after = st.positions()[:n_pts]
+    v_after = st.velocities()[:n_pts]
+    phi = plane.signed_distance(x_after, dt)
+    assert (phi >= contact.thickness - PENETRATION_TOLERANCE).all()
+    vs = plane.surface_velocity(x_after, dt)
+    rel_b, rel_a = v_before - vs, v_after - vs
+    vn_b, vn_a = rel_b @ normal, rel_a @ normal
+    vt_b = rel_b - np.outer(vn_b, normal)
+    vt_a = rel_a - np.outer(vn_a, normal)
+    into = vn_b < 0
+    assert into.sum() > 10 and (~into).sum() > 5
+    assert (vn_a >= -1e-4).all()  # never approaching after the impulse
+    np.testing.assert_allclose(vn_a[into], -mu_n * vn_b[into], atol=1e-4)  # restitution
+    dvt = np.linalg.norm(vt_a - vt_b, axis=1)
+    dvn = np.abs(vn_a - vn_b)
+    assert (dvt <= mu_t * dvn + 1e-4).all()  # Coulomb
+    assert (np.linalg.norm(vt_a, axis=1) <= np.linalg.norm(vt_b, axis=1) + 1e-4).all()
+    rev = (vt_a * vt_b).sum(axis=1)
+    assert (rev >= -1e-4 * np.linalg.norm(vt_b, axis=1)).all()  # a >= 0: no reversal
+    np.testing.assert_allclose(v_after[~into], v_before[~into], atol=1e-6)  # separating: untouched
+    if mu_t > 0:  # both regimes occur: some stick (vt = 0), some slide (vt > 0)
+        stick = np.linalg.norm(vt_a[into], axis=1) < 1e-4
+        assert stick.any() and (~stick).any()
+
+
+@pytest.mark.parametrize("restitution", [0.0, 1.0])
+def test_restitution_single_particle(restitution):
+    model, st = particles(np.array([[0.0, 0.3, 0.0]]))
+    model.gravity = (0.0, -9.81, 0.0)
+    contact = ObstacleContact(model, [Plane()], restitution=restitution, friction=0.0)
+    solver = make_solver("explicit", model)
+    solver.add_correction(contact)
+    dt = 1e-3
+    speeds, heights, vys = [], [], []
+    for _ in range(600):
+        v_prev = st.velocities()[0, 1]
+        solver.step(st, dt)
+        x, v = st.positions()[0], st.velocities()[0]
+        heights.append(x[1])
+        vys.append(v[1])
+        if v_prev < 0 and v[1] >= 0 and x[1] < 0.01:  # the bounce step
+            speeds.append((v_prev, v[1]))
+    assert speeds, "the particle never reached the plane"
+    v_in, v_out = speeds[0]
+    v_in -= 9.81 * dt  # the incoming velocity inside the bounce step (gravity applied first)
+    if restitution == 0.0:
+        assert abs(v_out) < 1e-4
+        assert max(heights[len(heights) // 2:]) < contact.thickness + 1e-4  # no bounce
+    else:
+        assert v_out == pytest.approx(-v_in, rel=1e-3)  # normal speed conserved
+        assert max(heights[350:]) > 0.27  # it comes back up close to 0.3 m
+
+
+# ------------------------------------------------------------------ friction on an incline
+@pytest.mark.parametrize("solver_name", SOLVERS)
+@pytest.mark.parametrize("ratio", [0.8, 1.25])
+def test_incline_sticks_below_and_slides_above_tan_mu(solver_name, ratio):
+    mu = 0.5
+    angle = math.atan(ratio * mu)
+    normal = (-math.sin(angle), math.cos(angle), 0.0)
+    plane = Plane(normal, (0.0, 0.0, 0.0))
+    th = 0.005
+    grid = TriMesh.grid(4, 4, size=0.2, plane="xz", origin=(-0.1, th, -0.1))
+    mesh = TriMesh(plane.to_world(grid.vertices, 0.0), grid.triangles, name="cloth")
+    model = ClothModel(mesh, damping=0.0)
+    contact = ObstacleContact(model, [plane], thickness=th, friction=mu, restitution=0.0)
+    solver = make_solver(solver_name, model)
+    solver.add_correction(contact)
+    dt = solver_dt(solver)
+    st = model.state()
+    x0 = st.positions().mean(axis=0)
+    t_end = 0.3
+    for _ in range(int(round(t_end / dt))):
+        solver.step(st, dt)
+    down = np.array([-math.cos(angle), -math.sin(angle), 0.0])  # down the slope
+    s = float((st.positions().mean(axis=0) - x0) @ down)
+    expected = 0.5 * 9.81 * (math.sin(angle) - mu * math.cos(angle)) * t_end**2
+    if ratio < 1:
+        assert abs(s) < 1e-4, f"slid {s:.2e} m below tan(angle) = mu"
+    else:
+        assert s == pytest.approx(expected, rel=0.15), (s, expected)
+    phi = plane.signed_distance(st.positions(), st.t)
+    assert (phi >= th - 1e-3).all()
+
+
+# ------------------------------------------------------------------ spinning sphere
+def angular_momentum_y(model, st, center):
+    r = st.positions() - center
+    return float((model.masses[:, None] * np.cross(r, st.velocities()))[:, 1].sum())
+
+
+def test_spinning_sphere_carries_cloth_with_friction_only():
+    from warp_cloth.collision.scenes import spin
+
+    out = {}
+    for mu in (0.6, 0.0):
+        scene = spin(res=10, size=0.8, frames=31, friction=mu, start=0.1, ramp=0.1,
+                     spin_rate=4.0, height=0.81)
+        scene.run(quiet=True, energy=False)
+        c = np.array(scene.contact.obstacles[0].position)
+        out[mu] = angular_momentum_y(scene.model, scene.state, c)
+    # the sphere spins +y: friction gives the cloth +y angular momentum; without it, none
+    scale = scene.model.total_mass * 0.3 * 4.0 * 0.3  # m r (omega r)
+    assert out[0.6] > 0.05 * scale
+    assert abs(out[0.0]) < 0.02 * out[0.6]
+
+
+# ------------------------------------------------------------------ motion, USD, project_positions
+def test_device_poses_match_host_motion():
+    path = KeyframePath([0.0, 0.5, 1.0], [[0, 0, 0], [0.2, 0.1, 0], [0.0, 0.3, -0.1]],
+                        [[0, 0, 0, 1], quat_from_axis_angle((1, 0, 0), 1.0),
+                         quat_from_axis_angle((0, 1, 1), 2.5)])
+    ob = Box((0.1, 0.2, 0.3), (1.0, 2.0, 3.0), rotation=quat_from_axis_angle((0, 0, 1), 0.3),
+             motion=Motion((0.3, 0, 0.1), (0.0, 5.0, 1.0), start=0.2, ramp=0.3, path=path))
+    model, st = particles(np.array([[10.0, 10.0, 10.0]]))
+    contact = ObstacleContact(model, [ob])
+    dt = 0.01
+    for t in (0.0, 0.27, 0.6, 3.7, 40.0):
+        st.time.assign(np.array([t]))
+        contact.apply(st, st.x, dt)
+        p = contact.poses.numpy()
+        for j, tt in ((0, t), (1, t + dt)):
+            c, q = ob.pose(tt)
+            np.testing.assert_allclose(p[j][:3], c, atol=2e-5)
+            qd = p[j][3:]
+            assert abs(abs(float(np.dot(qd, q))) - 1.0) < 1e-5
+    # the clock for project_positions is the next step's start time
+    assert contact.clock.numpy()[0] == pytest.approx(40.0 + dt)
+
+
+def test_project_positions_moves_positions_only():
+    model, st = particles(np.array([[0.0, -0.1, 0.0], [0.0, 0.5, 0.0]]),
+                          np.array([[0.0, -1.0, 0.0], [0.0, -1.0, 0.0]]))
+    contact = ObstacleContact(model, [Plane()])
+    xs = wp.clone(st.x)
+    contact.project_positions(st.x, xs, 1e-3, time=st.time)
+    x, v = st.positions()[:2], st.velocities()[:2]
+    assert x[0, 1] == pytest.approx(contact.thickness, abs=1e-6)
+    assert x[1, 1] == pytest.approx(0.5)
+    np.testing.assert_allclose(v[:, 1], -1.0)  # velocities untouched
+
+
+def test_usd_output_has_animated_obstacles(tmp_usd):
+    from pxr import Usd, UsdGeom
+
+    from warp_cloth.collision.scenes import mesh as mesh_scene
+
+    scene = mesh_scene(res=4, frames=4, fps=2.0)
+    scene.run(tmp_usd, quiet=True)
+    stage = Usd.Stage.Open(tmp_usd)
+    torus = stage.GetPrimAtPath("/World/torus")
+    ground = stage.GetPrimAtPath("/World/ground")
+    assert torus.IsValid() and ground.IsValid()
+    assert stage.GetPrimAtPath("/World/torus/geom").IsA(UsdGeom.Mesh)
+    xf = UsdGeom.Xformable(torus)
+    ops = {op.GetOpName(): op for op in xf.GetOrderedXformOps()}
+    tr = ops["xformOp:translate"]
+    assert len(tr.GetTimeSamples()) == 4
+    ob = scene.contact.obstacles[0]
+    for frame in range(4):
+        np.testing.assert_allclose(np.array(tr.Get(frame)), ob.pose(frame / 2.0)[0], atol=1e-6)
+    # the static ground is not animated
+    gops = UsdGeom.Xformable(ground).GetOrderedXformOps()
+    assert all(len(op.GetTimeSamples()) == 0 for op in gops)
+
+
+@pytest.mark.parametrize("name", ["drape", "table", "spin", "mesh"])
+def test_cli_scenes_build_and_run(name, tmp_usd):
+    from warp_cloth.scenes import build_scene
+
+    scene = build_scene(name, res=4, frames=3, solver="explicit")
+    stats = scene.run(tmp_usd, quiet=True)
+    assert stats.frames == 3 and stats.captured in (True, False)
+    assert scene.contact in scene.solver.corrections and scene.solver.capturable
+
+
+def test_table_cloth_slides_off_the_edge():
+    from warp_cloth.collision.scenes import table
+
+    scene = table(res=8, frames=150)
+    scene.run(quiet=True, energy=False)
+    x = scene.state.positions()
+    # the sheet left the table top (x > 0.4 m) and most of it reached the floor
+    assert x[:, 0].min() > 0.4
+    assert np.median(x[:, 1]) < 0.1
+
+
+# ------------------------------------------------------------------ argument checks
+@pytest.mark.parametrize("build,match", [
+    (lambda: Sphere(-0.1), "radius"),
+    (lambda: Sphere(0.1, friction=-1), "friction"),
+    (lambda: Box((0.1, 0.0, 0.1)), "half_extents"),
+    (lambda: Plane((0, 0, 0)), "normal"),
+    (lambda: Plane(restitution=1.5), "restitution"),
+    (lambda: Motion(ramp=-1.0), "ramp"),
+    (lambda: KeyframePath([0.0, 0.0], np.zeros((2, 3))), "increase"),
+    (lambda: MeshObstacle(quad_mesh(), closed=True), "boundary"),
+    (lambda: MeshObstacle(quad_mesh(), scale=0.0), "scale"),
+])
+def test_obstacle_arguments_are_checked(build, match):
+    with pytest.raises(ValueError, match=match):
+        build()
+
+
+@pytest.mark.parametrize("kw,match", [
+    ({"friction": -0.1}, "friction"), ({"restitution": 1.2}, "restitution"),
+    ({"restitution": -0.1}, "restitution"), ({"thickness": 0.0}, "thickness"),
+    ({"thickness": float("nan")}, "thickness"),
+])
+def test_contact_arguments_are_checked(kw, match):
+    model, _ = particles(np.zeros((1, 3)))
+    with pytest.raises(ValueError, match=match):
+        ObstacleContact(model, [Plane()], **kw)
+    with pytest.raises(ValueError, match="at least one"):
+        ObstacleContact(model, [])
