@@ -135,3 +135,12 @@ def test_cli_divergence_exit_code(tmp_path, capsys):
 def test_unknown_scene_name():
     with pytest.raises(ValueError, match="unknown scene"):
         build_scene("nowhere")
+
+
+def test_cli_builds_both_limits_with_their_own_bounds():
+    args = cli.build_parser().parse_args(
+        ["run", "hanging", "--strain-limit", "0,1.01", "--area-limit", "0.8,1.2"])
+    scene = build_scene("hanging", res=4, corrections=cli._corrections(args), device="cpu")
+    strain, area = scene.solver.corrections
+    assert (strain.sigma_min, strain.sigma_max) == (0.0, 1.01)
+    assert (area.a_min, area.a_max) == (0.8, 1.2)

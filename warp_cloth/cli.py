@@ -123,10 +123,10 @@ def _corrections(args):
 
         if args.strain_limit is not None:
             lo, hi = args.strain_limit
-            out.append(lambda model: limits.StrainLimit(model, lo, hi))
+            out.append(lambda model, lo=lo, hi=hi: limits.StrainLimit(model, lo, hi))
         if args.area_limit is not None:
             lo, hi = args.area_limit
-            out.append(lambda model: limits.AreaLimit(model, lo, hi))
+            out.append(lambda model, lo=lo, hi=hi: limits.AreaLimit(model, lo, hi))
     return out
 
 

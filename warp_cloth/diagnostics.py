@@ -42,7 +42,7 @@ def strain_measure_kernel(
     e = wp.tid()
     s = wp.length(x[springs[e, 0]] - x[springs[e, 1]]) / rest[e] - 1.0
     if wp.isfinite(s):
-        wp.atomic_max(out, 3, wp.abs(s))
+        wp.atomic_max(out, 3, s)
 
 
 @dataclass
@@ -51,7 +51,7 @@ class Measure:
     kinetic: float
     gravity_potential: float
     elastic: float
-    max_strain: float  # max over mesh edges of |l/L - 1|
+    max_strain: float  # largest stretch over mesh edges, max(l/L - 1), >= 0
 
     @property
     def energy(self) -> float:

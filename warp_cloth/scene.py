@@ -38,7 +38,7 @@ class RunStats:
     total_s: float
     ms_per_frame: float
     ms_per_substep: float
-    max_strain: float  # largest mesh-edge strain |l/L - 1| over all frames
+    max_strain: float  # largest mesh-edge stretch l/L - 1 over all frames (compression not counted)
     final_max_strain: float
     min_height: float  # along the up axis (y), over all frames
     max_height: float
@@ -98,8 +98,8 @@ class Scene:
         substeps: solver steps per frame; ``None`` asks the solver (`suggest_substeps`), which for
             the explicit solver derives it from its stability bound.
         obstacles: obstacles written to the stage (contact itself is a solver correction).
-        strain_bound: the divergence guard stops the run when a mesh edge's strain
-            ``|l/L - 1|`` exceeds this (default 10, i.e. 1000 %); ``inf`` disables it.
+        strain_bound: the divergence guard stops the run when a mesh edge's stretch
+            ``l/L - 1`` exceeds this (default 10, i.e. 1000 %); ``inf`` disables it.
         capture: replay each frame's substeps as a recorded Warp graph when the solver allows.
         name: a label for progress output.
     """

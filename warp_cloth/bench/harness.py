@@ -1,0 +1,209 @@
+"""Shared machinery of the speed/accuracy and stability benchmarks.
+
+A `Config` names a method, its solver options, substeps per frame and an optional strain limit.
+`run_config` runs it on a built-in scene, records positions at fixed frames, and returns a
+`Result` (wall time per simulated second with compile excluded, errors against a reference,
+maximum strain, energy drift, divergence). `reference` computes and caches the reference
+trajectory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import statistics
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import SimulationDiverged
+from ..scenes import build_scene
+
+METHOD_COLOURS = {"explicit": "tab:red", "implicit": "tab:blue", "pbd": "tab:green", "pd": "tab:purple"}
+
+
+@dataclass
+class Config:
+    method: str
+    solver_options: dict = field(default_factory=dict)
+    substeps: int = 1
+    strain_limit: tuple | None = None
+    label: str = ""
+
+    def __post_init__(self):
+        if not self.label:
+            opts = ",".join(f"{k}={v}" for k, v in sorted(self.solver_options.items()))
+            self.label = f"{self.method}[{opts}]x{self.substeps}" + (
+                f"+limit{self.strain_limit[1]:g}" if self.strain_limit else "")
+
+
+@dataclass
+class Result:
+    config: Config
+    diverged: bool
+    diverged_frame: int | None
+    wall_per_sim_s: float  # seconds of wall time per simulated second (compile excluded)
+    rms_error: float  # relative to the cloth size, over all sample frames and vertices
+    max_error: float
+    max_strain: float
+    energy_drift: float  # (E_end - E_0) / |E_0|
+    positions: np.ndarray | None = None  # (S, N, 3) at the sample frames
+
+    def row(self) -> dict:
+        c = self.config
+        return {
+            "method": c.method, "label": c.label, "substeps": c.substeps,
+            "options": json.dumps(c.solver_options, sort_keys=True),
+            "strain_limit": "" if c.strain_limit is None else f"{c.strain_limit[0]:g},{c.strain_limit[1]:g}",
+            "diverged": self.diverged, "diverged_frame": "" if self.diverged_frame is None else self.diverged_frame,
+            "wall_per_sim_s": self.wall_per_sim_s, "rms_error": self.rms_error,
+            "max_error": self.max_error, "max_strain": self.max_strain,
+            "energy_drift": self.energy_drift,
+        }
+
+
+def _corrections(config: Config):
+    if config.strain_limit is None:
+        return ()
+    from ..limits import StrainLimit
+
+    lo, hi = config.strain_limit
+    return (lambda model: StrainLimit(model, lo, hi),)
+
+
+def simulate(scene_name: str, scene_params: dict, config: Config, frames: int, fps: float,
+             sample_frames, repeats: int = 1):
+    """Run ``config`` ``repeats`` times; return (positions at sample_frames, stats of the median
+    run, diverged frame or None)."""
+    walls, stats, pos, div = [], None, None, None
+    sample = set(int(f) for f in sample_frames)
+    for _ in range(max(1, repeats)):
+        scene = build_scene(scene_name, solver=config.method, solver_options=dict(config.solver_options),
+                            substeps=config.substeps, corrections=_corrections(config), frames=frames,
+                            fps=fps, **scene_params)
+        rec = {}
+
+        def on_frame(f, state):
+            if f in sample:
+                rec[f] = state.x.numpy().astype(np.float64)
+
+        try:
+            st = scene.run(None, quiet=True, on_frame=on_frame)
+        except SimulationDiverged as e:
+            return None, None, e.frame
+        walls.append(st.wall_s)
+        stats = st
+        pos = np.stack([rec[f] for f in sorted(sample)])
+    stats.wall_s = statistics.median(walls)
+    return pos, stats, div
+
+
+def run_config(scene_name, scene_params, config, frames, fps, sample_frames, ref_positions,
+               size, repeats=1) -> Result:
+    pos, st, div = simulate(scene_name, scene_params, config, frames, fps, sample_frames, repeats)
+    if pos is None:
+        return Result(config, True, div, math.nan, math.nan, math.nan, math.nan, math.nan)
+    steps_time = (frames - 2) / fps  # frames after the first stepped one (which includes compile)
+    err = np.linalg.norm(pos - ref_positions, axis=2) / size
+    return Result(
+        config, False, None, st.wall_s / steps_time, float(np.sqrt((err ** 2).mean())),
+        float(err.max()), st.max_strain,
+        (st.energy_final - st.energy_initial) / max(abs(st.energy_initial), 1e-12), pos,
+    )
+
+
+# --------------------------------------------------------------------------- the reference
+def reference_config(ref_substeps: int) -> Config:
+    return Config("implicit", {"newton_iterations": 30, "tolerance": 1e-6, "linear": "cg",
+                               "linear_iterations": 400, "linear_tolerance": 1e-6},
+                  substeps=ref_substeps, label=f"reference implicit x{ref_substeps}")
+
+
+def cache_dir() -> str:
+    d = os.environ.get("WARP_CLOTH_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "warp_cloth")
+    os.makedirs(d, exist_ok=True)
+    return d
+
+
+def reference(scene_name, scene_params, frames, fps, sample_frames, ref_substeps, validate=True,
+              log=print) -> dict:
+    """Reference positions at ``sample_frames``: implicit Euler, Newton to 1e-6 with CG to 1e-6,
+    ``ref_substeps`` steps per frame. Cached on disk, keyed by every parameter. With
+    ``validate``, also computed at twice the substeps; the change is stored as
+    ``halving_rms`` / ``halving_max`` (relative to the cloth size), which must stay below the
+    errors the reference is used to measure."""
+    from .. import __version__
+
+    key = json.dumps({"scene": scene_name, "params": scene_params, "frames": frames, "fps": fps,
+                      "sample": [int(f) for f in sample_frames], "substeps": ref_substeps,
+                      "config": dataclasses.asdict(reference_config(ref_substeps)),
+                      "version": __version__}, sort_keys=True, default=str)
+    h = hashlib.sha256(key.encode()).hexdigest()[:16]
+    path = os.path.join(cache_dir(), f"ref_{scene_name}_{h}.npz")
+    if os.path.exists(path):
+        data = np.load(path)
+        out = {k: data[k] for k in data.files}
+        if not validate or "halving_rms" in out:
+            out["cached"] = True
+            out["path"] = path
+            return out
+    log(f"computing reference ({ref_substeps} implicit steps per frame) -> {path}")
+    pos, st, div = simulate(scene_name, scene_params, reference_config(ref_substeps), frames, fps,
+                            sample_frames)
+    if pos is None:
+        raise RuntimeError(f"the reference diverged at frame {div}")
+    out = {"positions": pos, "wall_s": np.float64(st.wall_s)}
+    if validate:
+        log(f"validating reference at {2 * ref_substeps} steps per frame")
+        pos2, _, div2 = simulate(scene_name, scene_params, reference_config(2 * ref_substeps), frames,
+                                 fps, sample_frames)
+        if pos2 is None:
+            raise RuntimeError(f"the halved-step reference diverged at frame {div2}")
+        size = float(np.ptp(pos[0], axis=0).max()) or 1.0
+        d = np.linalg.norm(pos2 - pos, axis=2) / size
+        out["halving_rms"] = np.float64(np.sqrt((d ** 2).mean()))
+        out["halving_max"] = np.float64(d.max())
+        out["positions"] = pos2  # the finer of the two is the reference
+    np.savez(path, **out)
+    out["cached"] = False
+    out["path"] = path
+    return out
+
+
+# --------------------------------------------------------------------------- outputs
+def pareto(results) -> list:
+    """Indices of the non-dominated (faster and more accurate) stable results."""
+    ok = [i for i, r in enumerate(results) if not r.diverged and math.isfinite(r.rms_error)]
+    front = []
+    for i in ok:
+        a = results[i]
+        dominated = any(
+            (b.wall_per_sim_s <= a.wall_per_sim_s and b.rms_error <= a.rms_error)
+            and (b.wall_per_sim_s < a.wall_per_sim_s or b.rms_error < a.rms_error)
+            for j, b in ((j, results[j]) for j in ok) if j != i)
+        if not dominated:
+            front.append(i)
+    return sorted(front, key=lambda i: results[i].wall_per_sim_s)
+
+
+def write_csv(path, rows):
+    import csv
+
+    if not rows:
+        return
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def have_matplotlib() -> bool:
+    try:
+        import matplotlib  # noqa: F401
+
+        return True
+    except ImportError:
+        return False

@@ -1,0 +1,204 @@
+"""``warp-cloth bench tradeoff``: what each method buys in accuracy for its cost.
+
+For a scene (``hanging``, or ``drape`` when contact is installed) it runs a ladder of
+configurations of every available method and measures, per configuration:
+
+- wall time per simulated second (kernel compile excluded, median of ``--repeats`` runs);
+- position error against a reference trajectory, RMS and max over the vertices at fixed sample
+  times (every 0.25 s), relative to the cloth size;
+- maximum edge strain, energy drift ``(E_end - E_0) / |E_0|``, and whether it diverged.
+
+The reference is implicit Euler (Newton to 1e-6, CG to 1e-6) at ``--ref-substeps`` steps per
+frame, cached on disk (``$WARP_CLOTH_CACHE`` or ``~/.cache/warp_cloth``) keyed by all scene
+parameters. It is validated by recomputing it at twice the substeps: that change is printed and
+must be smaller than the errors it measures.
+
+Outputs (in ``--out-dir``): ``tradeoff_<scene>.csv``, ``tradeoff_<scene>.md`` (table, Pareto
+frontier marked) and, with matplotlib installed, ``tradeoff_<scene>.png`` (error against time per
+simulated second, log-log, one point per configuration coloured by method, frontier joined).
+``--quick`` is a small smoke version that finishes in under two minutes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+
+import numpy as np
+
+from ..util import quiet_warp
+from .common import markdown_table
+from .harness import (METHOD_COLOURS, Config, have_matplotlib, pareto, reference, run_config,
+                      write_csv)
+
+
+def ladder(methods, base_substeps: int, stiffness: float, quick: bool):
+    """The configurations per method (see module docstring)."""
+    out = []
+    s0 = max(1, base_substeps)
+    lim = (0.0, 1.01)
+    if "explicit" in methods:
+        for f in ((1, 2) if quick else (0.5, 1, 2, 4)):
+            out.append(Config("explicit", {}, substeps=max(1, int(round(s0 * f)))))
+    if "implicit" in methods:
+        grid = [(1, "cg", 20, 1), (3, "cg", 40, 1)] if quick else [
+            (1, "cg", 20, 1), (1, "cg", 20, 4), (3, "cg", 40, 1), (3, "cg", 40, 4),
+            (10, "cg", 100, 1), (1, "chebyshev", 40, 1), (3, "chebyshev", 80, 1),
+            (1, "jacobi", 40, 1), (3, "jacobi", 160, 1)]
+        for newton, lin, inner, sub in grid:
+            out.append(Config("implicit", {"newton_iterations": newton, "linear": lin,
+                                           "linear_iterations": inner, "tolerance": None,
+                                           "linear_tolerance": None}, substeps=sub))
+        out.append(Config("implicit", {"newton_iterations": 1, "linear": "cg", "linear_iterations": 20,
+                                       "tolerance": None, "linear_tolerance": None},
+                          substeps=1, strain_limit=lim))
+    if "pbd" in methods:
+        grid = [(10, 1, None), (10, 4, None)] if quick else [
+            (5, 1, None), (10, 1, None), (20, 1, None), (40, 1, None), (10, 4, None), (20, 4, None),
+            (10, 1, 1.0 / stiffness), (20, 4, 1.0 / stiffness)]
+        for it, sub, comp in grid:
+            opts = {"iterations": it}
+            if comp is not None:
+                opts["compliance"] = comp
+            out.append(Config("pbd", opts, substeps=sub))
+        out.append(Config("pbd", {"iterations": 10}, substeps=1, strain_limit=lim))
+    if "pd" in methods:
+        grid = [(10, "chebyshev", 1), (10, "cg", 1)] if quick else [
+            (5, "chebyshev", 1), (10, "chebyshev", 1), (20, "chebyshev", 1), (40, "chebyshev", 1),
+            (10, "chebyshev", 4), (10, "cg", 1), (10, "jacobi", 1)]
+        for it, lin, sub in grid:
+            out.append(Config("pd", {"iterations": it, "linear": lin}, substeps=sub))
+        out.append(Config("pd", {"iterations": 10, "linear": "chebyshev"}, substeps=1, strain_limit=lim))
+    return out
+
+
+def plot(path, results, front, title):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 5))
+    seen = set()
+    for r in results:
+        if r.diverged:
+            continue
+        m = r.config.method
+        ax.scatter(r.wall_per_sim_s, max(r.rms_error, 1e-7), c=METHOD_COLOURS.get(m, "k"),
+                   marker="s" if r.config.strain_limit else "o", s=36, alpha=0.8,
+                   label=m if m not in seen else None)
+        seen.add(m)
+    fx = [results[i].wall_per_sim_s for i in front]
+    fy = [max(results[i].rms_error, 1e-7) for i in front]
+    ax.plot(fx, fy, "k--", lw=1, label="Pareto frontier")
+    ax.scatter(fx, fy, facecolors="none", edgecolors="k", s=110, lw=1.2)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("wall time per simulated second [s] (compile excluded)")
+    ax.set_ylabel("RMS position error / cloth size")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, title="square: with strain limit", title_fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="warp-cloth bench tradeoff", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scene", default="hanging", choices=["hanging", "drape"])
+    p.add_argument("--res", type=int, default=None, help="cells per side (default 16, quick 8)")
+    p.add_argument("--duration", type=float, default=None, help="simulated seconds (default 1, quick 0.5)")
+    p.add_argument("--fps", type=float, default=60.0)
+    p.add_argument("--stiffness", type=float, default=1000.0)
+    p.add_argument("--repeats", type=int, default=None, help="timing repeats (default 3, quick 1)")
+    p.add_argument("--ref-substeps", type=int, default=None, help="reference steps per frame (default 32, quick 16)")
+    p.add_argument("--methods", default=None, help="comma list (default: all available)")
+    p.add_argument("--out-dir", default="bench_out")
+    p.add_argument("--quick", action="store_true", help="small smoke run, under two minutes")
+    p.add_argument("--no-progress", action="store_true")
+    args = p.parse_args(argv)
+    quiet_warp()
+    from ..solvers import available
+    from ..solvers.explicit import SymplecticEuler
+    from ..scenes import hanging_model
+
+    res = args.res or (8 if args.quick else 16)
+    duration = args.duration or (0.5 if args.quick else 1.0)
+    repeats = args.repeats or (1 if args.quick else 3)
+    ref_sub = args.ref_substeps or (16 if args.quick else 32)
+    if res < 2 or duration <= 0 or repeats < 1 or ref_sub < 1 or not (args.fps > 0):
+        p.error("--res >= 2, --duration > 0, --repeats >= 1, --ref-substeps >= 1, --fps > 0")
+    avail = available()
+    methods = avail if args.methods is None else [m.strip() for m in args.methods.split(",")]
+    bad = [m for m in methods if m not in avail]
+    if bad:
+        p.error(f"methods {bad} not available; available: {avail}")
+    if "implicit" not in avail:
+        p.error("the reference needs the implicit solver, which is not available")
+    os.makedirs(args.out_dir, exist_ok=True)
+
+    frames = int(round(duration * args.fps)) + 1
+    step = max(1, int(round(0.25 * args.fps)))
+    sample = list(range(step, frames, step))
+    if (frames - 1) not in sample:
+        sample.append(frames - 1)
+    params = {"res": res, "stiffness": args.stiffness}
+    size = hanging_model(res=res).mesh.extent() if args.scene == "hanging" else 1.0
+    base = max(1, math.ceil((1 / args.fps) / (0.5 * SymplecticEuler.stable_dt(hanging_model(res=res, stiffness=args.stiffness)))))
+
+    log = (lambda *a: None) if args.no_progress else (lambda *a: print(*a, file=sys.stderr))
+    t0 = time.perf_counter()
+    ref = reference(args.scene, params, frames, args.fps, sample, ref_sub, validate=True, log=log)
+    configs = ladder(methods, base, args.stiffness, args.quick)
+    results = []
+    for k, cfg in enumerate(configs):
+        if not args.no_progress and sys.stderr.isatty():
+            sys.stderr.write(f"\r[{k + 1}/{len(configs)}] {cfg.label:<70.70}")
+            sys.stderr.flush()
+        elif not args.no_progress:
+            log(f"[{k + 1}/{len(configs)}] {cfg.label}")
+        results.append(run_config(args.scene, params, cfg, frames, args.fps, sample,
+                                  ref["positions"], size, repeats))
+    if not args.no_progress and sys.stderr.isatty():
+        sys.stderr.write("\n")
+    front = pareto(results)
+
+    stem = os.path.join(args.out_dir, f"tradeoff_{args.scene}")
+    rows = [dict(r.row(), pareto=(i in front)) for i, r in enumerate(results)]
+    write_csv(stem + ".csv", rows)
+    hdr = ["", "method", "configuration", "wall s / sim s", "RMS err", "max err", "max strain", "energy drift", "diverged"]
+    table = []
+    for i, r in enumerate(results):
+        table.append(["*" if i in front else "", r.config.method, r.config.label, r.wall_per_sim_s,
+                      r.rms_error, r.max_error, r.max_strain, r.energy_drift,
+                      f"frame {r.diverged_frame}" if r.diverged else "no"])
+    min_err = min((r.rms_error for r in results if not r.diverged), default=math.nan)
+    head = (
+        f"# Speed/accuracy trade-off: {args.scene}\n\n"
+        f"Command: `warp-cloth bench tradeoff --scene {args.scene} --res {res} --duration {duration:g} "
+        f"--fps {args.fps:g} --stiffness {args.stiffness:g} --repeats {repeats} --ref-substeps {ref_sub}"
+        f"{' --quick' if args.quick else ''}`\n\n"
+        f"{(res + 1) ** 2 if args.scene == 'hanging' else ''} vertices, {duration:g} s simulated at "
+        f"{args.fps:g} fps; errors at t = {', '.join(f'{f / args.fps:.2f}' for f in sample)} s, relative to "
+        f"the cloth size {size:g} m. Reference: implicit Euler, {ref_sub} steps per frame, Newton and CG to "
+        f"1e-6; halving its step changes it by {float(ref['halving_rms']):.2e} RMS "
+        f"({float(ref['halving_max']):.2e} max), "
+        f"{'below' if float(ref['halving_rms']) < min_err else 'NOT below'} the smallest RMS error measured "
+        f"({min_err:.2e}). `*` = Pareto frontier (nothing else is both faster and more accurate).\n\n")
+    md = head + markdown_table(hdr, table) + "\n"
+    with open(stem + ".md", "w") as fh:
+        fh.write(md)
+    print(md)
+    if have_matplotlib():
+        plot(stem + ".png", results, front,
+             f"{args.scene}: {res}x{res} cells, {duration:g} s at {args.fps:g} fps, k={args.stiffness:g} N/m")
+        print(f"wrote {stem}.csv, {stem}.md, {stem}.png")
+    else:
+        print(f"wrote {stem}.csv, {stem}.md (install matplotlib for the plot)")
+    print(f"total {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    return 0
