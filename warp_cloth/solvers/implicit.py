@@ -322,9 +322,10 @@ class ImplicitEuler(Solver):
         tolerance: metres (default 1e-4); stop Newton when the implicit-Euler residual
             ``max_i |x_i - x0_i - dt v0_i - dt^2 f_i(x)/m_i|`` is below it. ``None``: always run
             ``newton_iterations`` (no host reads).
-        step_tolerance: metres (default ``tolerance / 10``); also stop when a Newton update
-            moves no vertex farther than this (the remaining position error is then far
-            smaller; float32 rounding alone moves vertices by about ``1e-7 max|x|``).
+        step_tolerance: metres (default ``max(tolerance / 10, 1.2e-7 max|x_rest|)``); also stop
+            when a Newton update moves no vertex farther than this (the remaining position error
+            is then far smaller; float32 rounding alone moves vertices by about
+            ``1e-7 max|x|``, so a cloth that travels far from its rest place may need more).
             ``stats["converged"]`` tells whether ``r < tolerance`` was reached.
         linear: inner solver, ``"cg"``, ``"jacobi"`` or ``"chebyshev"``.
         linear_iterations: maximum inner iterations per Newton iteration (default 200 for CG and
@@ -398,7 +399,9 @@ class ImplicitEuler(Solver):
         self.newton_iterations = int(newton_iterations)
         self.tolerance = tolerance
         if step_tolerance is None:
-            step_tolerance = 0.0 if tolerance is None else 0.1 * tolerance
+            # float32 rounding alone moves a vertex at |x| by about eps32 |x| per update
+            reach = float(np.abs(model.mesh.vertices).max()) if model.num_vertices else 1.0
+            step_tolerance = 0.0 if tolerance is None else max(0.1 * tolerance, 1.2e-7 * reach)
         if not (math.isfinite(step_tolerance) and step_tolerance >= 0):
             raise ValueError(f"implicit: step_tolerance must be >= 0 metres, got {step_tolerance!r}")
         self.step_tolerance = float(step_tolerance)
@@ -579,6 +582,27 @@ class ImplicitEuler(Solver):
         if trace is not None:
             self._stats["trace"] = trace
         self._lazy = lazy
+
+    def newton_system(self, state, dt: float):
+        """Begin a step on ``state`` and assemble its first Newton system (for benchmarks/tests).
+
+        Mutates ``state`` like the start of `step` (free vertices move to the initial guess;
+        the pins are not moved) and returns ``(A, b)``: the operator ``M/dt^2 + H(x^(0))`` and
+        ``-grad F(x^(0))``. Solve with any `warp_cloth.solvers.linear` solver.
+        """
+        m = self.model
+        self._scale, self._dt2 = 1.0 / (dt * dt), dt * dt
+        self.A.mass_scale = self._scale
+        self.f_ext.zero_()
+        for t in self.explicit_terms:
+            t.eval(state.x, state.v, self.f_ext, state.time)
+        wp.launch(begin_step_kernel, m.num_vertices,
+                  [state.x, state.v, m.mass, m.inv_mass, wp.vec3(*m.gravity), dt,
+                   1 if self.initial_guess == "inertial" else 0, self.f_ext, self.x_prev,
+                   self.x_hat], device=self.device)
+        self.residuals.zero_()
+        self._assemble(state.x, 0)
+        return self.A, self.b
 
     def _line_search(self, x) -> float:
         """Backtracking on F along dx (Armijo with c = 1e-4): host reads."""
