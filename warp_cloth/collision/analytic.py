@@ -54,6 +54,18 @@ def shape_sdf(kind: int, size: wp.vec3, p: wp.vec3):
 
 
 @wp.func
+def shape_phi(kind: int, size: wp.vec3, p: wp.vec3):
+    """The signed distance alone (cheaper than `shape_sdf`: no normal)."""
+    if kind == KIND_PLANE:
+        return p[1]
+    if kind == KIND_SPHERE:
+        return wp.length(p) - size[0]
+    q = wp.vec3(wp.abs(p[0]) - size[0], wp.abs(p[1]) - size[1], wp.abs(p[2]) - size[2])
+    qo = wp.vec3(wp.max(q[0], 0.0), wp.max(q[1], 0.0), wp.max(q[2], 0.0))
+    return wp.length(qo) + wp.min(wp.max(q[0], wp.max(q[1], q[2])), 0.0)
+
+
+@wp.func
 def shape_ccd(kind: int, size: wp.vec3, th: float, p0: wp.vec3, p1: wp.vec3):
     """First entry of the segment p0 -> p1 into the shape inflated by ``th``.
 
@@ -120,20 +132,36 @@ def analytic_contact_kernel(
     x0 = x_start[i]
     x1 = x[i]
     vi = wp.vec3(0.0)
-    if respond_velocity != 0:
-        vi = v[i]
+    touched = bool(False)  # read v and write back only for vertices near an obstacle
     reach = thickness + slack
     for k in range(obstacles.shape[0]):
         ob = obstacles[k]
-        j = 4 * (pose_offset + k)
-        p0 = wp.transform_point(poses[j + 2], x0)
+        j = 5 * (pose_offset + k)
+        # far test, first in the world frame without a transform: a lower bound of phi(x1)
+        # (exact for plane and sphere); phi is 1-Lipschitz, so if it exceeds the path length
+        # no point of the path comes within the thickness (static obstacles: the local path
+        # is the world path)
+        r = x1 - wp.transform_get_translation(poses[j + 1])
+        lb = float(0.0)
+        if ob.kind == KIND_PLANE:
+            lb = wp.dot(r, wp.transform_get_translation(poses[j + 4]))
+        else:
+            lb = wp.length(r) - ob.bound
+        if lb >= reach:
+            if ccd == 0:
+                continue
+            if ob.moving == 0 and (lb - thickness) * (lb - thickness) >= wp.length_sq(x1 - x0):
+                continue
         p1 = wp.transform_point(poses[j + 3], x1)
+        phi = shape_phi(ob.kind, ob.size, p1)
+        if phi >= reach:
+            if ccd == 0:
+                continue
+            p0 = wp.transform_point(poses[j + 2], x0)
+            if (phi - thickness) * (phi - thickness) >= wp.length_sq(p1 - p0):
+                continue
+        p0 = wp.transform_point(poses[j + 2], x0)
         phi, n = shape_sdf(ob.kind, ob.size, p1)
-        # far: the end is out of reach and (phi being 1-Lipschitz) no point of the path is
-        # inside the inflated shape
-        d = p1 - p0
-        if phi >= reach and (ccd == 0 or (phi - thickness) * (phi - thickness) >= wp.dot(d, d)):
-            continue
         moved = False
         p_in = p1
         if ccd != 0 and ob.kind != KIND_PLANE:
@@ -146,12 +174,17 @@ def analytic_contact_kernel(
             p1 = p1 + (thickness - phi) * n
             moved = True
         if respond_velocity != 0 and (moved or phi < reach):
+            if not touched:
+                vi = v[i]
+            touched = True
             x1, vi = respond(p0, p1, n, poses[j], poses[j + 1], vi, dt, ob.restitution,
                              ob.friction)
         elif moved:
             if ob.friction > 0.0:
                 p1 = position_friction(p0, p_in, p1, n, ob.friction)
             x1 = wp.transform_point(poses[j + 1], p1)
-    x[i] = x1
-    if respond_velocity != 0:
-        v[i] = vi
+            touched = True
+    if touched:
+        x[i] = x1
+        if respond_velocity != 0:
+            v[i] = vi

@@ -53,7 +53,7 @@ import math
 import numpy as np
 import warp as wp
 
-from .motion import KIND_MESH
+from .motion import KIND_MESH, quat_rotate
 from .obstacles import Obstacle
 
 __all__ = ["ObstacleContact", "PENETRATION_TOLERANCE", "DEFAULT_THICKNESS", "DEFAULT_FRICTION",
@@ -153,7 +153,8 @@ class ObstacleContact:
             c, q = ob.pose(0.0)
             tf = wp.transform(wp.vec3(*c), wp.quat(*q))
             ti = wp.transform_inverse(tf)
-            poses += [tf, tf, ti, ti]
+            up = wp.transform(wp.vec3(*quat_rotate(q, (0.0, 1.0, 0.0))), wp.quat_identity())
+            poses += [tf, tf, ti, ti, up]
         self.poses = wp.array(poses, dtype=wp.transform, device=d)
         self._analytic_data = self._data[: len(self.analytic)] if self.analytic else None
         self._mesh_data = None

@@ -97,13 +97,17 @@ def mesh_contact_kernel(
     x0 = x_start[i]
     x1 = x[i]
     vi = wp.vec3(0.0)
-    if respond_velocity != 0:
-        vi = v[i]
+    touched = bool(False)  # read v and write back only for vertices near an obstacle
     reach = thickness + slack
     for k in range(obstacles.shape[0]):
         ob = obstacles[k]
         mid = mesh_ids[k]
-        j = 4 * (pose_offset + k)
+        j = 5 * (pose_offset + k)
+        # far test in the world frame (no transform): outside the bounding ball by more than
+        # the reach and, for a static mesh, by more than the path length
+        lb = wp.length(x1 - wp.transform_get_translation(poses[j + 1])) - ob.bound - reach
+        if lb > 0.0 and (ccd == 0 or (ob.moving == 0 and lb * lb >= wp.length_sq(x1 - x0))):
+            continue
         p0 = wp.transform_point(poses[j + 2], x0)
         p1 = wp.transform_point(poses[j + 3], x1)
         d = p1 - p0
@@ -142,15 +146,20 @@ def mesh_contact_kernel(
             p1 = c + thickness * n
             moved = True
         if respond_velocity != 0 and (moved or phi < reach):
+            if not touched:
+                vi = v[i]
+            touched = True
             x1, vi = respond(p0, p1, n, poses[j], poses[j + 1], vi, dt, ob.restitution,
                              ob.friction)
         elif moved:
             if ob.friction > 0.0:
                 p1 = position_friction(p0, p_in, p1, n, ob.friction)
             x1 = wp.transform_point(poses[j + 1], p1)
-    x[i] = x1
-    if respond_velocity != 0:
-        v[i] = vi
+            touched = True
+    if touched:
+        x[i] = x1
+        if respond_velocity != 0:
+            v[i] = vi
 
 
 @wp.kernel

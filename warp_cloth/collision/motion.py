@@ -241,6 +241,8 @@ class ObstacleData:
     size: wp.vec3  # sphere: (r, 0, 0); box: half extents; mesh: local AABB half extents
     center: wp.vec3  # mesh: local AABB centre (else 0)
     closed: int  # mesh: 1 when watertight and outward oriented
+    moving: int  # 0: the pose never changes
+    bound: float  # radius of a ball about the local origin holding the shape (0 for a plane)
     position: wp.vec3  # rest pose centre, m
     rotation: wp.quat  # rest pose rotation
     velocity: wp.vec3  # m/s
@@ -310,7 +312,8 @@ def obstacle_poses_kernel(
     poses: wp.array(dtype=wp.transform),
 ):
     """Poses of every obstacle at the start and end of the step, once per step (one thread per
-    obstacle): ``poses[4k + 0..3] = T(t0), T(t1), T(t0)^-1, T(t1)^-1``."""
+    obstacle): ``poses[5k + 0..4] = T(t0), T(t1), T(t0)^-1, T(t1)^-1`` and the world direction
+    of the local +y axis at t1 (a plane's normal) as the translation of the fifth."""
     k = wp.tid()
     t0 = time[0]
     t1 = t0 + wp.float64(dt)
@@ -318,7 +321,8 @@ def obstacle_poses_kernel(
         clock[0] = t1  # the next step's start time, for project_positions without a time
     T0 = obstacle_pose(obstacles[k], key_times, key_offsets, key_rotations, t0)
     T1 = obstacle_pose(obstacles[k], key_times, key_offsets, key_rotations, t1)
-    poses[4 * k + 0] = T0
-    poses[4 * k + 1] = T1
-    poses[4 * k + 2] = wp.transform_inverse(T0)
-    poses[4 * k + 3] = wp.transform_inverse(T1)
+    poses[5 * k + 0] = T0
+    poses[5 * k + 1] = T1
+    poses[5 * k + 2] = wp.transform_inverse(T0)
+    poses[5 * k + 3] = wp.transform_inverse(T1)
+    poses[5 * k + 4] = wp.transform(wp.transform_vector(T1, wp.vec3(0.0, 1.0, 0.0)), wp.quat_identity())

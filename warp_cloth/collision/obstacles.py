@@ -118,6 +118,8 @@ class Obstacle:
         d.size = wp.vec3(*self._size())
         d.center = wp.vec3(*self._center())
         d.closed = int(getattr(self, "closed", False))
+        d.moving = int(self.moving)
+        d.bound = float(self._bound())
         d.position = wp.vec3(*self.position)
         d.rotation = wp.quat(*self.rotation)
         m = self.motion
@@ -135,6 +137,10 @@ class Obstacle:
 
     def _center(self):
         return (0.0, 0.0, 0.0)
+
+    def _bound(self) -> float:
+        """Radius of a ball about the local origin that holds the shape (0: unbounded)."""
+        return 0.0
 
     # ------------------------------------------------------------ USD
     def usd_define(self, stage, parent: str = "/World"):
@@ -236,6 +242,9 @@ class Sphere(Obstacle):
     def _size(self):
         return (self.radius, 0.0, 0.0)
 
+    def _bound(self):
+        return self.radius
+
     def _local_sdf(self, p):
         return np.linalg.norm(p, axis=1) - self.radius
 
@@ -265,6 +274,9 @@ class Box(Obstacle):
 
     def _size(self):
         return tuple(self.half_extents)
+
+    def _bound(self):
+        return float(np.linalg.norm(self.half_extents))
 
     def _local_sdf(self, p):
         q = np.abs(p) - self.half_extents
@@ -355,6 +367,9 @@ class MeshObstacle(Obstacle):
 
     def _center(self):
         return tuple(0.5 * (self.vertices.max(axis=0) + self.vertices.min(axis=0)))
+
+    def _bound(self):
+        return float(np.linalg.norm(self.vertices, axis=1).max())
 
     def _local_sdf(self, p):
         from .mesh_contact import mesh_signed_distance
