@@ -353,9 +353,17 @@ class ImplicitEuler(Solver):
             count is given). At 60 fps, dt = 1/120 s keeps the default hanging sheet's swing
             visibly alive while every step is unconditionally stable; one step per frame
             works too, with stronger numerical damping.
-        stats: after each step ``newton_iterations``, ``inner_iterations``, ``residual`` (m; nan
-            when not measured), ``linear_residual`` (relative, last inner solve), ``fallback``
-            (Chebyshev fell back to Jacobi), ``rho`` (Chebyshev).
+        stats: after each step ``newton_iterations`` (linear solves), ``inner_iterations``
+            (summed over them), ``residual`` (m, of the final iterate; nan when not measured:
+            fixed-iteration mode without ``measure_residual``), ``converged`` (``residual <
+            tolerance``), ``linear_residual`` (relative, last inner solve; nan when unchecked),
+            ``fallback`` (Chebyshev fell back to Jacobi), ``rho`` (Chebyshev), ``trace``.
+
+    Cost (measured by ``warp-cloth bench implicit`` on the 2-core CPU of this project, 2,145
+    vertices, dt = 1/120 s): a CG iteration costs about 85 us (the matrix-free spring matvec
+    40 us of it); CG needs about 260 iterations to a relative residual of 1e-4, so one Newton
+    iteration costs about 23 ms as a captured graph. Chebyshev needs about 24x fewer iterations
+    than plain Jacobi, CG about 4x fewer than Chebyshev.
     """
 
     name = "implicit"
