@@ -398,3 +398,20 @@ def test_contact_arguments_are_checked(kw, match):
         ObstacleContact(model, [Plane()], **kw)
     with pytest.raises(ValueError, match="at least one"):
         ObstacleContact(model, [])
+
+
+def test_mesh_distance_cache_is_invalidated_when_the_state_jumps():
+    ball = MeshObstacle(asset_path("sphere.obj"), scale=0.3)
+    model, st = particles(np.array([[0.0, 0.6, 0.0], [0.5, 0.0, 0.0]]))
+    contact = ObstacleContact(model, [ball], cache_margin=1.0)  # far vertices get a big gap
+    solver = make_solver("explicit", model)
+    solver.add_correction(contact)
+    for _ in range(3):
+        solver.step(st, 1e-3)
+    assert contact._gap.numpy()[0] > 0.2  # cached: far from the ball
+    x = st.positions()
+    x[0] = [0.0, 0.25, 0.0]  # teleport inside the ball (a reset / an external edit)
+    st.x.assign(x.astype(np.float32))
+    solver.step(st, 1e-3)
+    phi = ball.signed_distance(st.positions()[:1], st.t)
+    assert phi[0] >= contact.thickness - PENETRATION_TOLERANCE

@@ -19,6 +19,13 @@ obstacle's motion during the step is part of the relative path), with contact th
    ``p1 <- c + th n``, with ``n`` pointing from ``c`` to the outside (closed) or to the vertex's
    side (open).
 3. In contact: the impulse of `warp_cloth.collision.response`.
+
+Distance cache (``apply`` only, static meshes): each vertex keeps a lower bound of its distance to
+each mesh (``gap``, from the last query, searched ``margin`` beyond the reach) and the position it
+ended the last step at (``last``). While the step starts exactly there and ``gap`` minus the path
+length stays above the reach, the vertex skips the BVH queries: the distance cannot have dropped
+by more than the distance moved. Anything else that moved the vertex in between (a state reset, a
+later correction) fails the ``last == x_start`` check and the vertex is queried again.
 """
 
 from __future__ import annotations
@@ -41,13 +48,14 @@ def closest(mid: wp.uint64, closed: int, p: wp.vec3, p_from: wp.vec3, center: wp
     phi = float(0.0)
     n = wp.vec3(0.0, 1.0, 0.0)
     if closed != 0:
-        rel = p - center
-        md = max_dist
-        if wp.abs(rel[0]) <= half[0] and wp.abs(rel[1]) <= half[1] and wp.abs(rel[2]) <= half[2]:
-            md = wp.max(max_dist, 2.0 * wp.length(half))
-        q = wp.mesh_query_point_sign_normal(mid, p, md)
+        q = wp.mesh_query_point_sign_normal(mid, p, max_dist)
         if not q.result:
-            return False, c, phi, n
+            rel = p - center
+            if wp.abs(rel[0]) <= half[0] and wp.abs(rel[1]) <= half[1] and wp.abs(rel[2]) <= half[2]:
+                # in the bounding box: might be deep inside, search the whole mesh
+                q = wp.mesh_query_point_sign_normal(mid, p, 2.0 * wp.length(half) + max_dist)
+            if not q.result:
+                return False, c, phi, n
         c = wp.mesh_eval_position(mid, q.face, q.u, q.v)
         diff = p - c
         dist = wp.length(diff)
@@ -90,6 +98,9 @@ def mesh_contact_kernel(
     slack: float,
     respond_velocity: int,
     ccd: int,
+    gap: wp.array(dtype=float),
+    last: wp.array(dtype=wp.vec3),
+    margin: float,
 ):
     i = wp.tid()
     if inv_mass[i] == 0.0:
@@ -99,14 +110,26 @@ def mesh_contact_kernel(
     vi = wp.vec3(0.0)
     touched = bool(False)  # read v and write back only for vertices near an obstacle
     reach = thickness + slack
-    for k in range(obstacles.shape[0]):
+    num = obstacles.shape[0]
+    # distance cache (apply only): valid when this step starts where the last one ended
+    caching = respond_velocity != 0
+    valid = caching and last[i] == x0
+    step_len = wp.length(x1 - x0)
+    for k in range(num):
         ob = obstacles[k]
         mid = mesh_ids[k]
         j = 5 * (pose_offset + k)
+        if valid and ob.moving == 0:
+            g = gap[i * num + k] - step_len  # a lower bound of the distance along the path
+            if g > reach:
+                gap[i * num + k] = g
+                continue
         # far test in the world frame (no transform): outside the bounding ball by more than
         # the reach and, for a static mesh, by more than the path length
         lb = wp.length(x1 - wp.transform_get_translation(poses[j + 1])) - ob.bound - reach
-        if lb > 0.0 and (ccd == 0 or (ob.moving == 0 and lb * lb >= wp.length_sq(x1 - x0))):
+        if lb > 0.0 and (ccd == 0 or (ob.moving == 0 and lb >= step_len)):
+            if caching:
+                gap[i * num + k] = lb + reach
             continue
         p0 = wp.transform_point(poses[j + 2], x0)
         p1 = wp.transform_point(poses[j + 3], x1)
@@ -120,10 +143,16 @@ def mesh_contact_kernel(
         ext = ob.size + wp.vec3(reach)
         if (lo[0] > ext[0] or lo[1] > ext[1] or lo[2] > ext[2]
                 or hi[0] < -ext[0] or hi[1] < -ext[1] or hi[2] < -ext[2]):
+            if caching:
+                gap[i * num + k] = reach
             continue
-        # closest point to the end position, as far as the path could reach
-        found, c, phi, n = closest(mid, ob.closed, p1, p0, ob.center, ob.size, reach + len_d)
+        # closest point to the end position, as far as the path could reach (plus the cache
+        # margin, so that a miss keeps the vertex out of the queries for a while)
+        radius = reach + len_d + margin
+        found, c, phi, n = closest(mid, ob.closed, p1, p0, ob.center, ob.size, radius)
         if not found:
+            if caching:
+                gap[i * num + k] = radius
             continue  # no surface within reach of the end, so the path cannot cross one
         moved = False
         p_in = p1
@@ -145,6 +174,10 @@ def mesh_contact_kernel(
         if phi < thickness:
             p1 = c + thickness * n
             moved = True
+        if caching:
+            gap[i * num + k] = phi
+            if moved:
+                gap[i * num + k] = 0.0
         if respond_velocity != 0 and (moved or phi < reach):
             if not touched:
                 vi = v[i]
@@ -160,6 +193,8 @@ def mesh_contact_kernel(
         x[i] = x1
         if respond_velocity != 0:
             v[i] = vi
+    if caching:
+        last[i] = x1
 
 
 @wp.kernel
