@@ -51,7 +51,7 @@ def _begin(solver, state, dt):
     solver.A.mass_scale = solver._scale
     wp.launch(imp.begin_step_kernel, m.num_vertices,
               [state.x, state.v, m.mass, m.inv_mass, wp.vec3(*m.gravity), dt, 1, solver.f_ext,
-               solver.x_prev, solver.x_hat])
+               solver.x_prev, solver.x_hat, solver.disp])
 
 
 @pytest.mark.parametrize("bending", ["none", "quadratic"])

@@ -88,25 +88,34 @@ def begin_step_kernel(
     f_ext: wp.array(dtype=wp.vec3),
     x_prev: wp.array(dtype=wp.vec3),
     x_hat: wp.array(dtype=wp.vec3),
+    disp: wp.array(dtype=wp.vec3),
 ):
-    """x_prev = x0; x_hat = x0 + dt v0; f_ext += m g; x^(0) = x_hat + dt^2 f_ext / m (inertial)."""
+    """x_prev = x0; x_hat = x0 + dt v0; f_ext += m g; x^(0) = x_hat + dt^2 f_ext / m (inertial).
+
+    ``disp`` accumulates x - x_hat exactly (as a sum of increments, not a difference of rounded
+    positions), so the end-of-step velocity keeps full float32 precision at small dt."""
     i = wp.tid()
     xi = x[i]
     x_prev[i] = xi
     xh = xi + dt * v[i]
     x_hat[i] = xh
+    disp[i] = wp.vec3(0.0)
     w = inv_mass[i]
     if w > 0.0:
         fe = f_ext[i] + mass[i] * gravity
         f_ext[i] = fe
         if inertial != 0:
-            x[i] = xh + (dt * dt * w) * fe
+            d0 = (dt * dt * w) * fe
+            x[i] = xh + d0
+            disp[i] = d0
 
 
 @wp.kernel
 def newton_init_kernel(
     x: wp.array(dtype=wp.vec3),
     x_hat: wp.array(dtype=wp.vec3),
+    disp: wp.array(dtype=wp.vec3),
+    use_disp: int,
     mass: wp.array(dtype=float),
     f_ext: wp.array(dtype=wp.vec3),
     scale: float,
@@ -114,10 +123,17 @@ def newton_init_kernel(
     diag: wp.array(dtype=wp.mat33),
     dx: wp.array(dtype=wp.vec3),
 ):
-    """b = f_ext - M/dt^2 (x - x_hat) (the non-elastic part of -grad F); diag = M/dt^2; dx = 0."""
+    """b = f_ext - M/dt^2 (x - x_hat) (the non-elastic part of -grad F); diag = M/dt^2; dx = 0.
+
+    For the solver's own iterate (``use_disp``), ``x - x_hat`` is the exact increment sum ``disp``: at small dt the difference of the rounded
+    positions loses all precision (dt^2 g is then below float32 resolution of x) and would act
+    as a spurious force of order m * eps |x| / dt^2."""
     i = wp.tid()
     sm = scale * mass[i]
-    b[i] = f_ext[i] - sm * (x[i] - x_hat[i])
+    u = x[i] - x_hat[i]
+    if use_disp != 0:
+        u = disp[i]
+    b[i] = f_ext[i] - sm * u
     diag[i] = sm * wp.identity(n=3, dtype=float)
     dx[i] = wp.vec3(0.0)
 
@@ -193,11 +209,13 @@ def newton_update_kernel(
     free: wp.array(dtype=float),
     dx_max: wp.array(dtype=float),
     slot: int,
+    disp: wp.array(dtype=wp.vec3),
 ):
     i = wp.tid()
     if free[i] > 0.0:
         d = step * dx[i]
         x[i] = x[i] + d
+        disp[i] = disp[i] + d
         wp.atomic_max(dx_max, slot, wp.length(d))
 
 
@@ -210,11 +228,14 @@ def end_step_kernel(
     decay: float,
     v: wp.array(dtype=wp.vec3),
     f_ext: wp.array(dtype=wp.vec3),
+    disp: wp.array(dtype=wp.vec3),
 ):
-    """v1 = (x1 - x0)/dt * decay for free vertices (pins keep the base class's velocity)."""
+    """v1 = (x1 - x0)/dt * decay = (v0 + (x1 - x_hat)/dt) * decay for free vertices, with
+    x1 - x_hat taken from the exact increment sum ``disp`` (pins keep the base class's velocity).
+    """
     i = wp.tid()
     if inv_mass[i] > 0.0:
-        v[i] = (x[i] - x_prev[i]) * (inv_dt * decay)
+        v[i] = (v[i] + disp[i] * inv_dt) * decay
     f_ext[i] = wp.vec3(0.0)
 
 
@@ -441,6 +462,8 @@ class ImplicitEuler(Solver):
         self.f_ext = wp.zeros(n, dtype=wp.vec3, device=d)
         self.x_prev = wp.zeros(n, dtype=wp.vec3, device=d)
         self.x_hat = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.disp = wp.zeros(n, dtype=wp.vec3, device=d)
+        self._iterate = None  # the positions array whose x - x_hat is tracked exactly in disp
         self.residuals = wp.zeros(self.newton_iterations + 1, dtype=wp.float32, device=d)
         self.dx_max = wp.zeros(self.newton_iterations + 1, dtype=wp.float32, device=d)
         if self.line_search or self.trace:
@@ -473,7 +496,8 @@ class ImplicitEuler(Solver):
         m, d, A = self.model, self.device, self.A
         n = m.num_vertices
         wp.launch(newton_init_kernel, n,
-                  [x, self.x_hat, m.mass, self.f_ext, self._scale, self.b, A.diag, self.dx],
+                  [x, self.x_hat, self.disp, 1 if x is self._iterate else 0, m.mass, self.f_ext,
+                   self._scale, self.b, A.diag, self.dx],
                   device=d)
         if m.num_springs:
             wp.launch(spring_newton_kernel, m.num_springs,
@@ -519,6 +543,7 @@ class ImplicitEuler(Solver):
     # ------------------------------------------------------------------ step
     def _advance(self, state, dt):
         m, d = self.model, self.device
+        self._iterate = state.x
         n = m.num_vertices
         self._scale = 1.0 / (dt * dt)
         self._dt2 = dt * dt
@@ -528,7 +553,7 @@ class ImplicitEuler(Solver):
         wp.launch(begin_step_kernel, n,
                   [state.x, state.v, m.mass, m.inv_mass, wp.vec3(*m.gravity), dt,
                    1 if self.initial_guess == "inertial" else 0, self.f_ext, self.x_prev,
-                   self.x_hat], device=d)
+                   self.x_hat, self.disp], device=d)
         self.residuals.zero_()
         self.dx_max.zero_()
         K = self.newton_iterations
@@ -558,7 +583,8 @@ class ImplicitEuler(Solver):
             step = 1.0
             if self.line_search:
                 step = self._line_search(x)
-            wp.launch(newton_update_kernel, n, [x, self.dx, step, self.A.free, self.dx_max, k],
+            wp.launch(newton_update_kernel, n,
+                      [x, self.dx, step, self.A.free, self.dx_max, k, self.disp],
                       device=d)
             done = k + 1
             if check or trace is not None:
@@ -580,7 +606,7 @@ class ImplicitEuler(Solver):
                 lazy = done
         wp.launch(end_step_kernel, n,
                   [x, self.x_prev, m.inv_mass, 1.0 / dt, math.exp(-m.damping * dt), state.v,
-                   self.f_ext], device=d)
+                   self.f_ext, self.disp], device=d)
         self._stats = {"newton_iterations": done, "inner_iterations": inner,
                        "residual": residual,
                        "converged": bool(check and residual < self.tolerance), "linear_residual": info["residual"],
@@ -599,6 +625,7 @@ class ImplicitEuler(Solver):
         ``-grad F(x^(0))``. Solve with any `warp_cloth.solvers.linear` solver.
         """
         m = self.model
+        self._iterate = state.x
         self._scale, self._dt2 = 1.0 / (dt * dt), dt * dt
         self.A.mass_scale = self._scale
         self.f_ext.zero_()
@@ -607,7 +634,7 @@ class ImplicitEuler(Solver):
         wp.launch(begin_step_kernel, m.num_vertices,
                   [state.x, state.v, m.mass, m.inv_mass, wp.vec3(*m.gravity), dt,
                    1 if self.initial_guess == "inertial" else 0, self.f_ext, self.x_prev,
-                   self.x_hat], device=self.device)
+                   self.x_hat, self.disp], device=self.device)
         self.residuals.zero_()
         self._assemble(state.x, 0)
         return self.A, self.b
