@@ -1,0 +1,78 @@
+"""The speed/accuracy and stability harness: tiny end-to-end runs and the Pareto logic."""
+
+import csv
+import math
+import os
+
+import numpy as np
+import pytest
+
+from warp_cloth.bench import stability, tradeoff
+from warp_cloth.bench.harness import Config, Result, pareto
+
+
+def _r(t, e, div=False):
+    return Result(Config("explicit"), div, 1 if div else None, t, e, e, 0.0, 0.0)
+
+
+def test_pareto_frontier_is_exactly_the_non_dominated_points():
+    res = [_r(1.0, 0.5), _r(2.0, 0.1), _r(3.0, 0.2), _r(0.5, 0.9), _r(0.1, 0.01, div=True), _r(2.0, 0.3)]
+    front = pareto(res)
+    assert front == [3, 0, 1]  # sorted by time; 2 and 5 are dominated by 1; 4 diverged
+    for i in front:
+        assert not any(r.wall_per_sim_s <= res[i].wall_per_sim_s and r.rms_error < res[i].rms_error
+                       for j, r in enumerate(res) if j != i and not r.diverged)
+
+
+def test_tradeoff_end_to_end(tmp_path, monkeypatch):
+    monkeypatch.setenv("WARP_CLOTH_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "bo"
+    argv = ["--res", "3", "--duration", "0.1", "--ref-substeps", "2", "--repeats", "1",
+            "--methods", "explicit,pbd", "--out-dir", str(out), "--quick", "--no-progress"]
+    assert tradeoff.main(argv) == 0
+    rows = list(csv.DictReader(open(out / "tradeoff_hanging.csv")))
+    assert {r["method"] for r in rows} == {"explicit", "pbd"}
+    stable = [r for r in rows if r["diverged"] == "False"]
+    assert stable and all(math.isfinite(float(r["rms_error"])) for r in stable)
+    front = [r for r in rows if r["pareto"] == "True"]
+    assert front
+    for a in front:  # frontier points are not dominated
+        assert not any(float(b["wall_per_sim_s"]) <= float(a["wall_per_sim_s"])
+                       and float(b["rms_error"]) < float(a["rms_error"]) for b in stable if b is not a)
+    md = (out / "tradeoff_hanging.md").read_text()
+    assert "warp-cloth bench tradeoff" in md and "Richardson" in md
+    assert (out / "tradeoff_hanging.png").stat().st_size > 1000
+    # the reference is cached: a second run does not recompute it
+    cached = os.listdir(tmp_path / "cache")
+    assert len(cached) == 1 and cached[0].startswith("ref_hanging_")
+
+
+def test_stability_cells_follow_the_theory():
+    # explicit: stable far below the bound, diverges at large k dt^2 / m
+    assert stability.run_cell("explicit", 1e3, 1 / 2000, 1.0, 4, 0.1, 0.1)["status"] == "S"
+    d = stability.run_cell("explicit", 1e7, 1 / 120, 1.0, 4, 0.1, 0.1)
+    assert d["status"] == "D" and d["frame"] >= 1
+    # implicit Euler does not diverge there
+    assert stability.run_cell("implicit", 1e7, 1 / 120, 1.0, 4, 0.1, 0.1)["status"] in ("S", "O")
+    # a soft cloth is flagged as over-stretched, not as diverged
+    assert stability.run_cell("explicit", 1e1, 1 / 2000, 1.0, 4, 0.2, 0.01)["status"] == "O"
+
+
+def test_checker_masses_keep_total_and_ratio():
+    from warp_cloth.mesh import TriMesh
+
+    m = stability.checker_masses(4, 0.15, 1000.0)
+    assert np.isclose(m.sum(), 0.15)  # the 1 m^2 sheet keeps its mass
+    per_area = m / TriMesh.grid(4, 4).vertex_areas()
+    levels = np.unique(np.round(per_area / per_area.min(), 6))
+    assert np.allclose(levels, [1.0, 1000.0])
+
+
+def test_stability_end_to_end(tmp_path):
+    assert stability.main(["--methods", "explicit", "--res", "3", "--duration", "0.05", "--quick",
+                           "--out-dir", str(tmp_path)]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "stability.csv")))
+    assert len(rows) == 4 * 3 * 2
+    assert {r["status"] for r in rows} <= {"S", "O", "D"}
+    assert "D" in {r["status"] for r in rows} and "S" in {r["status"] for r in rows}
+    assert (tmp_path / "stability.png").stat().st_size > 1000
