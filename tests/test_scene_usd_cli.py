@@ -114,6 +114,8 @@ def test_cli_run_and_info(tmp_path, capsys):
     (["run", "hanging", "--bogus"], "unrecognized arguments"),
     (["run", "hanging", "--linear", "cg"], "--linear applies to"),
     (["run", "hanging", "--strain-limit", "1.1,1.0"], "MIN <= MAX"),
+    (["run", "hanging", "--friction", "0.3"], "--friction applies to the contact scenes"),
+    (["run", "drape", "--restitution", "1.5"], "in [0, 1]"),
 ])
 def test_cli_usage_errors(argv, msg, capsys):
     with pytest.raises(SystemExit) as e:
@@ -144,3 +146,22 @@ def test_cli_builds_both_limits_with_their_own_bounds():
     strain, area = scene.solver.corrections
     assert (strain.sigma_min, strain.sigma_max) == (0.0, 1.01)
     assert (area.a_min, area.a_max) == (0.8, 1.2)
+
+
+def test_cli_contact_options_reach_the_contact(tmp_path, monkeypatch):
+    captured = {}
+    import warp_cloth.scene as scene_mod
+
+    real_run = scene_mod.Scene.run
+
+    def spy(self, *a, **k):
+        captured["contact"] = [c for c in self.solver.corrections if hasattr(c, "project_positions")][0]
+        k["on_frame"] = None
+        return real_run(self, *a, **k)
+
+    monkeypatch.setattr(scene_mod.Scene, "run", spy)
+    out = tmp_path / "d.usd"
+    assert cli.main(["run", "drape", "--res", "4", "--frames", "3", "--friction", "0.7",
+                     "--restitution", "0.2", "--thickness", "0.01", "--out", str(out), "--quiet"]) == 0
+    c = captured["contact"]
+    assert (c.friction, c.restitution, c.thickness) == (0.7, 0.2, 0.01)

@@ -20,6 +20,8 @@ from .util import quiet_warp
 
 SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh"]
 SOLVER_NAMES = ["explicit", "implicit", "pbd", "pd"]
+CONTACT_SCENES = ["drape", "table", "spin", "mesh"]
+CONTACT_OPTIONS = ["friction", "restitution", "thickness"]
 BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability"]
 
 # option -> (solver option name, solvers that accept it)
@@ -59,6 +61,16 @@ def _nonneg_float(s):
         raise argparse.ArgumentTypeError(f"expected a number >= 0, got {s!r}") from None
     if not (v >= 0 and v != float("inf")):
         raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {s!r}")
+    return v
+
+
+def _unit_float(s):
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {s!r}") from None
+    if not (0.0 <= v <= 1.0):
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {s!r}")
     return v
 
 
@@ -103,6 +115,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--compliance", type=_nonneg_float, default=None, help="pbd: XPBD compliance")
     r.add_argument("--strain-limit", type=_range_pair, default=None, metavar="SMIN,SMAX")
     r.add_argument("--area-limit", type=_range_pair, default=None, metavar="AMIN,AMAX")
+    r.add_argument("--friction", type=_nonneg_float, default=None,
+                   help="contact scenes: Coulomb friction coefficient mu_T")
+    r.add_argument("--restitution", type=_unit_float, default=None,
+                   help="contact scenes: normal restitution mu_N in [0, 1]")
+    r.add_argument("--thickness", type=_positive_float, default=None,
+                   help="contact scenes: contact thickness in m")
     r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0")
     r.add_argument("--quiet", action="store_true", help="no progress bar or Warp messages")
     r.add_argument("--json", action="store_true", help="print the run statistics as JSON")
@@ -156,6 +174,14 @@ def cmd_run(args, parser) -> int:
         val = getattr(args, opt)
         if val is not None:
             kw[name] = val
+    for opt in CONTACT_OPTIONS:
+        val = getattr(args, opt)
+        if val is None:
+            continue
+        if args.scene not in CONTACT_SCENES:
+            parser.error(f"--{opt} applies to the contact scenes {'/'.join(CONTACT_SCENES)}, "
+                         f"not {args.scene}")
+        kw[opt] = val
     out = args.out or f"{args.scene}.usd"
     try:
         scene = build_scene(args.scene, **kw)
