@@ -1,0 +1,47 @@
+"""A scene compiles and launches only the parts it uses (GUIDE principle 1)."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+PROBE = """
+import json, sys
+from warp_cloth.util import quiet_warp; quiet_warp()
+from warp_cloth.scenes import build_scene
+kw = json.loads(sys.argv[1])
+build_scene(kw.pop("scene"), frames=3, res=4, **kw).run(None, quiet=True)
+try:
+    import warp._src.context as ctx
+except ImportError:
+    import warp.context as ctx
+loaded = sorted(name for name, m in ctx.user_modules.items()
+                if name.startswith("warp_cloth") and m.execs)
+print(json.dumps(loaded))
+"""
+
+
+def loaded_modules(**kw):
+    out = subprocess.run([sys.executable, "-c", PROBE, json.dumps(kw)], capture_output=True,
+                         text=True, check=True)
+    return set(json.loads(out.stdout.strip().splitlines()[-1]))
+
+
+def test_plain_hanging_cloth_compiles_only_springs_and_explicit():
+    mods = loaded_modules(scene="hanging", solver="explicit")
+    assert mods == {"warp_cloth.diagnostics", "warp_cloth.solvers.common",
+                    "warp_cloth.forces.springs", "warp_cloth.solvers.explicit"}
+
+
+@pytest.mark.parametrize("kw,present,absent", [
+    (dict(scene="flag"), {"warp_cloth.forces.wind"}, {"warp_cloth.forces.bending"}),
+    (dict(scene="hanging", bending="dihedral", bend_stiffness=1e-4), {"warp_cloth.forces.bending"},
+     {"warp_cloth.forces.wind", "warp_cloth.solvers.linear"}),
+    (dict(scene="hanging", solver="implicit"), {"warp_cloth.solvers.implicit", "warp_cloth.solvers.linear"},
+     {"warp_cloth.forces.wind", "warp_cloth.forces.bending", "warp_cloth.solvers.explicit"}),
+])
+def test_optional_parts_compile_only_when_used(kw, present, absent):
+    mods = loaded_modules(**kw)
+    assert present <= mods
+    assert not (absent & mods)
