@@ -13,6 +13,7 @@ import pytest
 import warp as wp
 
 from warp_cloth.diagnostics import Meter
+from warp_cloth.forces.springs import spring_hessian_block
 from warp_cloth.model import PinPath
 from warp_cloth.scenes import hanging_model
 from warp_cloth.solvers import implicit as imp
@@ -129,11 +130,29 @@ def _blocks(xi, xj, rest, k, definite):
     m = len(xi)
     springs = wp.array(np.stack([np.arange(m), m + np.arange(m)], 1).astype(np.int32), ndim=2)
     x = wp.array(np.concatenate([xi, xj]), dtype=wp.vec3)
-    blocks = wp.zeros(m, dtype=wp.mat33)
+    slots = wp.array(np.stack([np.arange(m), m + np.arange(m)], 1).astype(np.int32), ndim=2)
+    coef = wp.zeros(2 * m, dtype=wp.vec4)
     wp.launch(imp.spring_newton_kernel, m,
               [x, springs, wp.array(rest, dtype=float), wp.array(np.full(m, k), dtype=float),
-               definite, wp.zeros(2 * m, dtype=wp.vec3), blocks, wp.zeros(2 * m, dtype=wp.mat33)])
-    return blocks.numpy().astype(np.float64)
+               definite, wp.zeros(2 * m, dtype=wp.vec3), slots, coef])
+    c = coef.numpy().astype(np.float64)
+    assert np.array_equal(c[:m], c[m:])  # both ends' entries hold the block
+    g, beta = c[:m, :3], c[:m, 3]
+    H = g[:, :, None] * g[:, None, :] + beta[:, None, None] * np.eye(3)
+    # the compact block (g g^T + beta I) is the notes' H_e (forces.springs.spring_hessian_block)
+    ref = wp.zeros(m, dtype=wp.mat33)
+    wp.launch(_hessian_block_kernel, m, [x, springs, wp.array(rest, dtype=float), float(k),
+                                         definite, ref])
+    assert np.allclose(H, ref.numpy(), rtol=1e-4, atol=1e-4 * k)
+    return H
+
+
+@wp.kernel
+def _hessian_block_kernel(x: wp.array(dtype=wp.vec3), springs: wp.array2d(dtype=wp.int32),
+                          rest: wp.array(dtype=float), k: float, definite: int,
+                          out: wp.array(dtype=wp.mat33)):
+    e = wp.tid()
+    out[e] = spring_hessian_block(x[springs[e, 0]], x[springs[e, 1]], k, rest[e], definite)
 
 
 def test_spring_hessian_definiteness(rng):

@@ -92,8 +92,9 @@ def _sparse_cg(model, A, b, tol, repeats, max_iters):
     rows_w = wp.array(rows, dtype=wp.int32, device=d)
     cols_w = wp.array(cols, dtype=wp.int32, device=d)
     vals = wp.zeros(len(rows), dtype=wp.mat33, device=d)
+    blocks = wp.array(A.spring_blocks(), dtype=wp.mat33, device=d)  # 3x3 blocks for the BSR
     fill = lambda: wp.launch(_bsr_values_kernel, n + model.num_springs,  # noqa: E731
-                             [model.spring_indices, A.blocks, A.diag, A.free, vals], device=d)
+                             [model.spring_indices, blocks, A.diag, A.free, vals], device=d)
     fill()
     M = ws.bsr_zeros(n, n, wp.mat33, device=d)
     mapping = ws.bsr_set_from_triplets(M, rows_w, cols_w, vals, prune_numerical_zeros=False,

@@ -68,9 +68,9 @@ import math
 import numpy as np
 import warp as wp
 
-from ..forces.springs import spring_force, spring_hessian_block
+from ..forces.springs import spring_force
 from .base import Solver
-from .linear import CGSolver, SpringSystemOperator, make_linear_solver
+from .linear import CGSolver, SpringSystemOperator, make_linear_solver, spring_block_matrix
 
 __all__ = ["ImplicitEuler"]
 
@@ -146,10 +146,15 @@ def spring_newton_kernel(
     stiffness: wp.array(dtype=float),
     definite: int,
     b: wp.array(dtype=wp.vec3),
-    blocks: wp.array(dtype=wp.mat33),
-    diag: wp.array(dtype=wp.mat33),
+    slots: wp.array2d(dtype=wp.int32),
+    coef: wp.array(dtype=wp.vec4),
 ):
-    """Spring forces into b, H_e into blocks[e] and onto both diagonal blocks."""
+    """Spring forces into b; the compact Hessian block ``H_e = g g^T + beta I`` into both of the
+    spring's CSR entries (`linear.SpringSystemOperator`).
+
+    ``H_e = k P + k c (I - P)`` with ``P = n n^T``, ``n = d/|d|``, ``c = 1 - L/|d|`` (physics.md
+    2.1) is ``k (1 - c) n n^T + k c I``: ``g = sqrt(k L/|d|) n`` and ``beta = k c`` (with the
+    definiteness fix ``c >= 0``, which makes ``H_e`` PSD)."""
     e = wp.tid()
     i = springs[e, 0]
     j = springs[e, 1]
@@ -157,17 +162,26 @@ def spring_newton_kernel(
     xj = x[j]
     k = stiffness[e]
     fi = spring_force(xi, xj, k, rest[e])
-    H = spring_hessian_block(xi, xj, k, rest[e], definite)
-    blocks[e] = H
+    d = xi - xj
+    l = wp.length(d)
+    c = wp.vec4(0.0, 0.0, 0.0, k)
+    if l >= 1.0e-12:
+        cc = 1.0 - rest[e] / l
+        if definite != 0 and cc < 0.0:
+            cc = 0.0
+        g = (wp.sqrt(k * (1.0 - cc)) / l) * d
+        c = wp.vec4(g[0], g[1], g[2], k * cc)
+    coef[slots[e, 0]] = c
+    coef[slots[e, 1]] = c
     wp.atomic_add(b, i, fi)
     wp.atomic_sub(b, j, fi)
-    wp.atomic_add(diag, i, H)
-    wp.atomic_add(diag, j, H)
 
 
 @wp.kernel
 def finish_system_kernel(
     diag: wp.array(dtype=wp.mat33),
+    offsets: wp.array(dtype=wp.int32),
+    coef: wp.array(dtype=wp.vec4),
     b: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     free: wp.array(dtype=float),
@@ -176,10 +190,15 @@ def finish_system_kernel(
     residual: wp.array(dtype=float),
     slot: int,
 ):
-    """Invert the diagonal blocks (0 for pins) and measure max_i |dt^2 b_i / m_i| (free only)."""
+    """Add the spring blocks at i to the diagonal block (gathered over the CSR row), invert it
+    (0 for pins) and measure max_i |dt^2 b_i / m_i| (free only)."""
     i = wp.tid()
+    D = diag[i]
+    for q in range(offsets[i], offsets[i + 1]):
+        D = D + spring_block_matrix(coef[q])
+    diag[i] = D
     if free[i] > 0.0:
-        dinv[i] = wp.inverse(diag[i])
+        dinv[i] = wp.inverse(D)
         r = (dt2 * inv_mass[i]) * b[i]
         wp.atomic_max(residual, slot, wp.max(wp.abs(r[0]), wp.max(wp.abs(r[1]), wp.abs(r[2]))))
     else:
@@ -502,15 +521,15 @@ class ImplicitEuler(Solver):
         if m.num_springs:
             wp.launch(spring_newton_kernel, m.num_springs,
                       [x, m.spring_indices, m.spring_rest_length, m.spring_k,
-                       0 if self.exact_hessian else 1, self.b, A.blocks, A.diag], device=d)
+                       0 if self.exact_hessian else 1, self.b, A.slots, A.coef], device=d)
         for t in self.implicit_terms:
             t.eval_with_hessian(x, self.b)
         if hessian:
             for t in self.implicit_terms:
                 t.add_diagonal(A.diag)
             wp.launch(finish_system_kernel, n,
-                      [A.diag, self.b, m.inv_mass, A.free, self._dt2, A.diag_inv, self.residuals,
-                       slot], device=d)
+                      [A.diag, A.offsets, A.coef, self.b, m.inv_mass, A.free, self._dt2, A.diag_inv,
+                       self.residuals, slot], device=d)
         else:
             wp.launch(residual_only_kernel, n, [self.b, m.inv_mass, self._dt2, self.residuals, slot],
                       device=d)

@@ -47,6 +47,15 @@ __all__ = [
 
 
 # ----------------------------------------------------------------------------------- kernels
+@wp.func
+def _cg_beta(rz: wp.array(dtype=wp.float64), k: int):
+    beta = float(0.0)
+    if k > 0:
+        if rz[k - 1] > wp.float64(0.0):
+            beta = float(rz[k] / rz[k - 1])
+    return beta
+
+
 @wp.kernel
 def _residual_kernel(b: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3),
                      free: wp.array(dtype=float), r: wp.array(dtype=wp.vec3),
@@ -83,21 +92,20 @@ def _jacobi_update_kernel(x: wp.array(dtype=wp.vec3), last: wp.array(dtype=wp.ve
 
 
 @wp.kernel
-def _cg_init_kernel(r: wp.array(dtype=wp.vec3), dinv: wp.array(dtype=wp.mat33),
-                    z: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3),
-                    rz: wp.array(dtype=wp.float64)):
+def _cg_start_kernel(b: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3),
+                     free: wp.array(dtype=float), dinv: wp.array(dtype=wp.mat33),
+                     r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
+                     rz: wp.array(dtype=wp.float64), bnorm: wp.array(dtype=wp.float64)):
+    """r = b - A x (free vertices), z = D^-1 r, rz_0 = r.z, bnorm = |b|^2 (free vertices)."""
     i = wp.tid()
-    zi = dinv[i] * r[i]
+    fi = free[i]
+    bi = b[i] * fi
+    ri = (b[i] - ax[i]) * fi
+    zi = dinv[i] * ri
+    r[i] = ri
     z[i] = zi
-    p[i] = zi
-    wp.atomic_add(rz, 0, wp.float64(wp.dot(r[i], zi)))
-
-
-@wp.kernel
-def _dot_kernel(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3),
-                free: wp.array(dtype=float), out: wp.array(dtype=wp.float64), slot: int):
-    i = wp.tid()
-    wp.atomic_add(out, slot, wp.float64(wp.dot(a[i], b[i]) * free[i]))
+    wp.atomic_add(rz, 0, wp.float64(wp.dot(ri, zi)))
+    wp.atomic_add(bnorm, 0, wp.float64(wp.dot(bi, bi)))
 
 
 @wp.kernel
@@ -122,13 +130,21 @@ def _cg_update_kernel(x: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3),
 
 
 @wp.kernel
-def _cg_direction_kernel(z: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3),
-                         rz: wp.array(dtype=wp.float64), k: int):
+def _cg_direction_kernel(z: wp.array(dtype=wp.vec3), az: wp.array(dtype=wp.vec3),
+                         free: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
+                         ap: wp.array(dtype=wp.vec3), rz: wp.array(dtype=wp.float64),
+                         pap: wp.array(dtype=wp.float64), k: int):
+    """beta = rz_k / rz_{k-1} (0 at k = 0); p = z + beta p; Ap = A z + beta Ap; pAp_k = p . Ap."""
     i = wp.tid()
-    beta = wp.float64(0.0)
-    if rz[k] > wp.float64(0.0):
-        beta = rz[k + 1] / rz[k]
-    p[i] = z[i] + float(beta) * p[i]
+    pi = z[i]
+    api = az[i]
+    if k > 0:
+        beta = _cg_beta(rz, k)
+        pi = pi + beta * p[i]
+        api = api + beta * ap[i]
+    p[i] = pi
+    ap[i] = api
+    wp.atomic_add(pap, k, wp.float64(wp.dot(pi, api) * free[i]))
 
 
 # ----------------------------------------------------------------------------------- solvers
@@ -164,6 +180,7 @@ class _Base:
         self.z = wp.zeros(n, dtype=wp.vec3, device=d)
         self.p = wp.zeros(n, dtype=wp.vec3, device=d)
         self.last = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.ap = wp.zeros(n, dtype=wp.vec3, device=d)
         self.saved = wp.zeros(n, dtype=wp.vec3, device=d)
         m = self.iterations + 2
         self.s1 = wp.zeros(m, dtype=wp.float64, device=d)
@@ -290,7 +307,13 @@ class ChebyshevSolver(JacobiSolver):
 
 class CGSolver(_Base):
     """Conjugate gradient with the block-Jacobi preconditioner. Needs an s.p.d. A (use the
-    definiteness fix for springs). 5 launches per iteration (operator matvec included: 2)."""
+    definiteness fix for springs).
+
+    Two launches per iteration when the operator offers ``cg_direction`` (`SpringSystemOperator`
+    without extra terms): (1) ``p = z + beta p``, ``Ap = A z + beta Ap`` and ``p.Ap`` in one
+    gather kernel (``A p`` by linearity from ``A z``, so the direction needs no launch of its
+    own), (2) ``x += alpha p``, ``r -= alpha Ap``, ``z = D^-1 r``, ``r.z``, ``r.r``. Otherwise
+    the operator's ``matvec`` of ``z`` replaces the fused matvec (its launches + 2)."""
 
     name = "cg"
 
@@ -304,28 +327,28 @@ class CGSolver(_Base):
                 setattr(self, name, wp.zeros(iters + 2, dtype=wp.float64, device=A.device))
         d, n = A.device, A.n
         rz, pap, rr = self.s1, self.s2, self.s3
-        rz.zero_(), pap.zero_(), rr.zero_()
+        rz.zero_(), pap.zero_(), rr.zero_(), self.bnorm.zero_()
         A.matvec(x, self.ax)
-        wp.launch(_residual_kernel, n, [b, self.ax, A.free, self.r, self.bnorm, 0], device=d)
-        wp.launch(_cg_init_kernel, n, [self.r, A.diag_inv, self.z, self.p, rz], device=d)
+        wp.launch(_cg_start_kernel, n,
+                  [b, self.ax, A.free, A.diag_inv, self.r, self.z, rz, self.bnorm], device=d)
+        fused = getattr(A, "cg_direction", None)
         bn = None
         if check is not None:
-            self._bnorm2(A, b)
             bn = math.sqrt(float(self.bnorm.numpy()[0])) or 1.0
         done, res = iters, float("nan")
         for k in range(iters):
-            A.matvec(self.p, self.ax)
-            wp.launch(_dot_kernel, n, [self.p, self.ax, A.free, pap, k], device=d)
+            if fused is None or not fused(self.z, self.p, self.ap, rz, pap, k):
+                A.matvec(self.z, self.ax)
+                wp.launch(_cg_direction_kernel, n,
+                          [self.z, self.ax, A.free, self.p, self.ap, rz, pap, k], device=d)
             wp.launch(_cg_update_kernel, n,
-                      [x, self.r, self.z, self.p, self.ax, A.diag_inv, A.free, rz, pap, rr, k],
+                      [x, self.r, self.z, self.p, self.ap, A.diag_inv, A.free, rz, pap, rr, k],
                       device=d)
             if check is not None and ((k + 1) % check == 0 or k + 1 == iters):
                 res = math.sqrt(float(rr.numpy()[k])) / bn
                 if tol is not None and res < tol:
                     done = k + 1
                     break
-            if k + 1 < iters:
-                wp.launch(_cg_direction_kernel, n, [self.z, self.p, rz, k], device=d)
         return {"iterations": done, "residual": res,
                 "converged": tol is not None and res < tol, "fallback": False}
 
@@ -341,22 +364,60 @@ def make_linear_solver(name: str, **options):
 
 
 # ----------------------------------------------------------------------------------- operator
+@wp.func
+def spring_block_apply(c: wp.vec4, u: wp.vec3):
+    """``H_e u`` for the compact block ``c = (g, beta)``: ``H_e = g g^T + beta I``."""
+    g = wp.vec3(c[0], c[1], c[2])
+    return wp.dot(g, u) * g + c[3] * u
+
+
+@wp.func
+def spring_block_matrix(c: wp.vec4):
+    g = wp.vec3(c[0], c[1], c[2])
+    return wp.outer(g, g) + c[3] * wp.identity(n=3, dtype=float)
+
+
+@wp.func
+def spring_row_apply(x: wp.array(dtype=wp.vec3), i: int, scale: float, mass: wp.array(dtype=float),
+                     offsets: wp.array(dtype=wp.int32), other: wp.array(dtype=wp.int32),
+                     coef: wp.array(dtype=wp.vec4)):
+    """Row i of ``A x`` (mass and springs): ``s m_i x_i + sum_{e=(i,j)} H_e (x_i - x_j)``."""
+    xi = x[i]
+    acc = (scale * mass[i]) * xi
+    for q in range(offsets[i], offsets[i + 1]):
+        acc = acc + spring_block_apply(coef[q], xi - x[other[q]])
+    return acc
+
+
 @wp.kernel
-def _diag_matvec_kernel(x: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), scale: float,
-                        out: wp.array(dtype=wp.vec3)):
+def _spring_matvec_kernel(x: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), scale: float,
+                          offsets: wp.array(dtype=wp.int32), other: wp.array(dtype=wp.int32),
+                          coef: wp.array(dtype=wp.vec4), out: wp.array(dtype=wp.vec3)):
+    """out = A x (mass + springs), one thread per vertex gathering its CSR row (no atomics)."""
     i = wp.tid()
-    out[i] = (scale * mass[i]) * x[i]
+    out[i] = spring_row_apply(x, i, scale, mass, offsets, other, coef)
 
 
 @wp.kernel
-def _spring_matvec_kernel(x: wp.array(dtype=wp.vec3), springs: wp.array2d(dtype=wp.int32),
-                          blocks: wp.array(dtype=wp.mat33), out: wp.array(dtype=wp.vec3)):
-    e = wp.tid()
-    i = springs[e, 0]
-    j = springs[e, 1]
-    y = blocks[e] * (x[i] - x[j])
-    wp.atomic_add(out, i, y)
-    wp.atomic_sub(out, j, y)
+def _spring_cg_direction_kernel(z: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
+                                scale: float, offsets: wp.array(dtype=wp.int32),
+                                other: wp.array(dtype=wp.int32), coef: wp.array(dtype=wp.vec4),
+                                free: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
+                                ap: wp.array(dtype=wp.vec3), rz: wp.array(dtype=wp.float64),
+                                pap: wp.array(dtype=wp.float64), k: int):
+    """CG direction with its matvec fused: beta = rz_k / rz_{k-1} (0 at k = 0);
+    p = z + beta p; Ap = A z + beta Ap (A p by linearity, so p need not be complete before the
+    matvec); pAp_k = p . Ap (free vertices)."""
+    i = wp.tid()
+    pi = z[i]
+    api = spring_row_apply(z, i, scale, mass, offsets, other, coef)
+    if k > 0:
+        beta = _cg_beta(rz, k)
+        pi = pi + beta * p[i]
+        api = api + beta * ap[i]
+    p[i] = pi
+    ap[i] = api
+    wp.atomic_add(pap, k, wp.float64(wp.dot(pi, api) * free[i]))
 
 
 @wp.kernel
@@ -366,35 +427,72 @@ def _diag_init_kernel(mass: wp.array(dtype=float), scale: float, diag: wp.array(
 
 
 @wp.kernel
-def _spring_diag_kernel(springs: wp.array2d(dtype=wp.int32), blocks: wp.array(dtype=wp.mat33),
-                        diag: wp.array(dtype=wp.mat33)):
-    e = wp.tid()
-    wp.atomic_add(diag, springs[e, 0], blocks[e])
-    wp.atomic_add(diag, springs[e, 1], blocks[e])
-
-
-@wp.kernel
-def _diag_invert_kernel(diag: wp.array(dtype=wp.mat33), free: wp.array(dtype=float),
+def _diag_finish_kernel(offsets: wp.array(dtype=wp.int32), coef: wp.array(dtype=wp.vec4),
+                        free: wp.array(dtype=float), diag: wp.array(dtype=wp.mat33),
                         dinv: wp.array(dtype=wp.mat33)):
+    """diag_i += sum of the blocks of the springs at i (gathered); dinv = diag^-1 (0 for pins)."""
     i = wp.tid()
+    D = diag[i]
+    for q in range(offsets[i], offsets[i + 1]):
+        D = D + spring_block_matrix(coef[q])
+    diag[i] = D
     if free[i] > 0.0:
-        dinv[i] = wp.inverse(diag[i])
+        dinv[i] = wp.inverse(D)
     else:
         dinv[i] = wp.mat33(0.0)
 
 
 @wp.kernel
-def _fill_blocks_kernel(k: wp.array(dtype=float), blocks: wp.array(dtype=wp.mat33)):
+def _fill_laplacian_kernel(k: wp.array(dtype=float), slots: wp.array2d(dtype=wp.int32),
+                           coef: wp.array(dtype=wp.vec4)):
     e = wp.tid()
-    blocks[e] = k[e] * wp.identity(n=3, dtype=float)
+    c = wp.vec4(0.0, 0.0, 0.0, k[e])
+    coef[slots[e, 0]] = c
+    coef[slots[e, 1]] = c
+
+
+@wp.kernel
+def _blocks_kernel(slots: wp.array2d(dtype=wp.int32), coef: wp.array(dtype=wp.vec4),
+                   blocks: wp.array(dtype=wp.mat33)):
+    e = wp.tid()
+    blocks[e] = spring_block_matrix(coef[slots[e, 0]])
+
+
+def spring_adjacency(model):
+    """CSR adjacency of the springs, per vertex: ``(offsets (n+1), other (2S), slots (S, 2))``.
+
+    Row ``i`` lists, at ``offsets[i]:offsets[i+1]``, the other end of every spring at ``i``;
+    spring ``e = (i, j)`` owns entry ``slots[e, 0]`` in row i and ``slots[e, 1]`` in row j."""
+    n = model.num_vertices
+    pairs = np.asarray(model.spring_pairs, dtype=np.int64).reshape(-1, 2)
+    S = len(pairs)
+    rows = np.concatenate([pairs[:, 0], pairs[:, 1]])
+    cols = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    order = np.argsort(rows, kind="stable")
+    counts = np.bincount(rows, minlength=n) if S else np.zeros(n, dtype=np.int64)
+    offsets = np.zeros(n + 1, dtype=np.int32)
+    offsets[1:] = np.cumsum(counts)
+    other = cols[order].astype(np.int32)
+    pos = np.empty(2 * S, dtype=np.int32)
+    pos[order] = np.arange(2 * S, dtype=np.int32)
+    slots = np.stack([pos[:S], pos[S:]], 1).astype(np.int32)
+    return offsets, other, slots
 
 
 class SpringSystemOperator:
     """``A = mass_scale * M + sum_e [[H_e, -H_e], [-H_e, H_e]] (+ extra terms)``, matrix-free.
 
-    ``blocks`` holds one 3x3 ``H_e`` per spring of the model: the implicit solver refills it with
-    the spring Hessians every Newton iteration; projective dynamics fills it once with
-    ``k_e I`` (`fill_laplacian`), which makes ``A = M/dt^2 + L (x) I_3``.
+    Every spring block is rank one plus a multiple of the identity (a spring's Hessian
+    ``k P + k c (I - P)`` with ``P = d d^T``, ``physics.md`` 2.1, and the projective-dynamics
+    ``k I``), so it is stored compactly as ``coef = (g, beta)`` (``wp.vec4``) with
+    ``H_e = g g^T + beta I`` (``g = sqrt(k L/|d|) d/|d|``, ``beta = k c``), once in each end's
+    CSR row (`spring_adjacency`: ``offsets``, ``other``, and ``slots[e] = (row-i entry, row-j
+    entry)``). The matvec is a gather, one thread per vertex, no atomics, and CG fuses it with
+    its direction update (`cg_direction`). Whoever writes the blocks writes both slots: the
+    implicit solver every Newton iteration, `fill_laplacian` once (``H_e = k_e I``, the
+    projective-dynamics matrix ``A = M/dt^2 + L (x) I_3``). `spring_blocks` returns the 3x3
+    blocks (host, for tests and comparisons); this replaces the former per-spring ``blocks``
+    array (``mat33``, written with atomics).
 
     ``extra`` terms (e.g. bending) provide ``matvec_add(x, out)`` and ``add_diagonal(diag)``.
     Call `update` after changing the blocks, the extra terms or ``mass_scale``.
@@ -408,7 +506,14 @@ class SpringSystemOperator:
         self.mass_scale = float(mass_scale)
         self.extra = list(extra)
         d = self.device
-        self.blocks = wp.zeros(max(model.num_springs, 1), dtype=wp.mat33, device=d)
+        offsets, other, slots = spring_adjacency(model)
+        self.num_springs = len(slots)
+        self.offsets = wp.array(offsets, dtype=wp.int32, device=d)
+        self.other = wp.array(other if len(other) else np.zeros(1, np.int32), dtype=wp.int32,
+                              device=d)
+        self.slots = wp.array(slots if len(slots) else np.zeros((1, 2), np.int32), dtype=wp.int32,
+                              ndim=2, device=d)
+        self.coef = wp.zeros(max(2 * self.num_springs, 1), dtype=wp.vec4, device=d)
         self.diag = wp.zeros(self.n, dtype=wp.mat33, device=d)
         self.diag_inv = wp.zeros(self.n, dtype=wp.mat33, device=d)
         free = (model.inverse_masses > 0).astype(np.float32)
@@ -417,29 +522,44 @@ class SpringSystemOperator:
     def fill_laplacian(self):
         """``H_e = k_e I`` for every spring (the projective-dynamics / Liu 2013 matrix)."""
         m = self.model
-        if m.num_springs:
-            wp.launch(_fill_blocks_kernel, m.num_springs, [m.spring_k, self.blocks], device=self.device)
+        if self.num_springs:
+            wp.launch(_fill_laplacian_kernel, self.num_springs, [m.spring_k, self.slots, self.coef],
+                      device=self.device)
+
+    def spring_blocks(self) -> np.ndarray:
+        """The spring blocks ``H_e`` as a ``(S, 3, 3)`` NumPy array (host; tests, benchmarks)."""
+        out = wp.zeros(max(self.num_springs, 1), dtype=wp.mat33, device=self.device)
+        if self.num_springs:
+            wp.launch(_blocks_kernel, self.num_springs, [self.slots, self.coef, out],
+                      device=self.device)
+        return out.numpy()[: self.num_springs]
 
     def update(self, mass_scale: float | None = None):
         if mass_scale is not None:
             self.mass_scale = float(mass_scale)
         m, d = self.model, self.device
         wp.launch(_diag_init_kernel, self.n, [m.mass, self.mass_scale, self.diag], device=d)
-        if m.num_springs:
-            wp.launch(_spring_diag_kernel, m.num_springs, [m.spring_indices, self.blocks, self.diag],
-                      device=d)
         for t in self.extra:
             t.add_diagonal(self.diag)
-        wp.launch(_diag_invert_kernel, self.n, [self.diag, self.free, self.diag_inv], device=d)
+        wp.launch(_diag_finish_kernel, self.n,
+                  [self.offsets, self.coef, self.free, self.diag, self.diag_inv], device=d)
 
     def matvec(self, x, out):
         m, d = self.model, self.device
-        wp.launch(_diag_matvec_kernel, self.n, [x, m.mass, self.mass_scale, out], device=d)
-        if m.num_springs:
-            wp.launch(_spring_matvec_kernel, m.num_springs, [x, m.spring_indices, self.blocks, out],
-                      device=d)
+        wp.launch(_spring_matvec_kernel, self.n,
+                  [x, m.mass, self.mass_scale, self.offsets, self.other, self.coef, out], device=d)
         for t in self.extra:
             t.matvec_add(x, out)
+
+    def cg_direction(self, z, p, ap, rz, pap, k) -> bool:
+        """CG's fused step ``p = z + beta p; Ap = A z + beta Ap; pAp_k = p . Ap`` in one launch.
+        Returns False (nothing done) when extra terms make the fused form unavailable."""
+        if self.extra:
+            return False
+        wp.launch(_spring_cg_direction_kernel, self.n,
+                  [z, self.model.mass, self.mass_scale, self.offsets, self.other, self.coef,
+                   self.free, p, ap, rz, pap, k], device=self.device)
+        return True
 
 
 # ----------------------------------------------------------------------------------- helpers
