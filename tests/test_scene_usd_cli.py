@@ -115,6 +115,10 @@ def test_cli_run_and_info(tmp_path, capsys):
     (["run", "hanging", "--linear", "cg"], "--linear applies to"),
     (["run", "hanging", "--strain-limit", "1.1,1.0"], "MIN <= MAX"),
     (["run", "hanging", "--friction", "0.3"], "--friction applies to the contact scenes"),
+    (["run", "hanging", "--out", "x.txt"], "--out must name a .usd"),
+    (["run", "hanging", "--out", "/nonexistent/dir/x.usd"], "does not exist"),
+    (["run", "hanging", "--device", "bogus"], "error"),
+    (["run", "hanging", "--fps", "1e-6"], "substeps per frame"),
     (["run", "drape", "--restitution", "1.5"], "in [0, 1]"),
 ])
 def test_cli_usage_errors(argv, msg, capsys):

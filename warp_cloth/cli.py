@@ -183,9 +183,14 @@ def cmd_run(args, parser) -> int:
                          f"not {args.scene}")
         kw[opt] = val
     out = args.out or f"{args.scene}.usd"
+    ext = os.path.splitext(out)[1].lower()
+    if ext not in (".usd", ".usda", ".usdc"):
+        parser.error(f"--out must name a .usd, .usda or .usdc file, got {out!r}")
+    if not os.path.isdir(os.path.dirname(os.path.abspath(out))):
+        parser.error(f"--out: directory {os.path.dirname(os.path.abspath(out))!r} does not exist")
     try:
         scene = build_scene(args.scene, **kw)
-    except (ValueError, TypeError) as e:
+    except (ValueError, TypeError, RuntimeError) as e:
         parser.error(str(e))
     try:
         stats = scene.run(out, quiet=args.quiet)

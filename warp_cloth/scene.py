@@ -23,6 +23,9 @@ from .errors import SimulationDiverged
 
 __all__ = ["Scene", "RunStats"]
 
+#: a frame needing more automatic substeps than this is refused (a user may still ask for more)
+MAX_SUBSTEPS = 100_000
+
 
 @dataclass
 class RunStats:
@@ -115,6 +118,10 @@ class Scene:
             raise ValueError(f"frames must be a positive integer, got {frames}")
         if substeps is None:
             substeps = suggest_substeps(solver, 1.0 / fps)
+            if substeps > MAX_SUBSTEPS:
+                raise ValueError(
+                    f"the {solver.name} solver needs {substeps} substeps per frame at {fps:g} fps "
+                    f"to stay stable (more than {MAX_SUBSTEPS}); raise fps or give substeps")
         if int(substeps) != substeps or substeps < 1:
             raise ValueError(f"substeps must be a positive integer, got {substeps}")
         if not (strain_bound > 0):
