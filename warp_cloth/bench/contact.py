@@ -134,6 +134,10 @@ def main(argv=None) -> int:
           f"{runs[0]['captured']})\n")
     print(markdown_table(["config", "ms/frame", "us/substep", "overhead", "target",
                           "vertices in contact", "vertices"], rows))
+    print("\nFloor (see warp_cloth/collision/contact.py): a captured launch costs ~0.2 us; the cost"
+          " is per vertex: ~2-4 us to read and far-test all vertices of a 32x32 sheet, 100-150 ns"
+          " per vertex touching an analytic obstacle, ~0.6 us per vertex that queries a mesh BVH."
+          " Draped cloth touches in proportion to its size, so the ratios barely change with --res.")
     return 0
 
 

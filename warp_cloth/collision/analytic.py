@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .motion import KIND_BOX, KIND_PLANE, KIND_SPHERE, ObstacleData
+from .motion import KIND_BOX, KIND_PLANE, KIND_SPHERE, ObstacleData, ObstacleReach
 from .response import position_friction, respond
 
 
@@ -111,9 +111,36 @@ def shape_ccd(kind: int, size: wp.vec3, th: float, p0: wp.vec3, p1: wp.vec3):
     return False, p1, wp.vec3(0.0, 1.0, 0.0)
 
 
+@wp.func
+def far_from(rb: ObstacleReach, x0: wp.vec3, x1: wp.vec3, reach: float, thickness: float,
+             ccd: int):
+    """True when the vertex's path ``x0 -> x1`` provably stays out of the obstacle's reach this
+    step (then the vertex needs nothing from it). World frame, no transform: ``lb`` is a lower
+    bound of phi at the end (exact for a plane and a sphere), phi is 1-Lipschitz, and the path in
+    the obstacle's frame is no longer than ``|x1 - x0|`` plus what the obstacle's translation and
+    rotation move the vertex's local position by (`ObstacleReach`)."""
+    r = x1 - rb.origin
+    lb = float(0.0)
+    if rb.plane != 0:
+        lb = wp.dot(r, rb.normal)
+    else:
+        lb = wp.length(r) - rb.bound
+    if lb < reach:
+        return False
+    if ccd == 0:
+        return True
+    gap = lb - thickness
+    s2 = wp.length_sq(x1 - x0)
+    if rb.sweep == 0.0 and rb.turn == 0.0:
+        return gap * gap >= s2
+    s = wp.sqrt(s2)
+    return gap >= s + rb.sweep + rb.turn * (wp.length(r) + s + rb.sweep)
+
+
 @wp.kernel
 def analytic_contact_kernel(
     obstacles: wp.array(dtype=ObstacleData),
+    reaches: wp.array(dtype=ObstacleReach),
     poses: wp.array(dtype=wp.transform),
     pose_offset: int,
     x: wp.array(dtype=wp.vec3),
@@ -127,41 +154,28 @@ def analytic_contact_kernel(
     ccd: int,
 ):
     i = wp.tid()
-    if inv_mass[i] == 0.0:
-        return
     x0 = x_start[i]
     x1 = x[i]
     vi = wp.vec3(0.0)
     touched = bool(False)  # read v and write back only for vertices near an obstacle
     reach = thickness + slack
-    for k in range(obstacles.shape[0]):
+    for k in range(reaches.shape[0]):
+        # far test first (most vertices stop here, having loaded x, x_start and a few floats)
+        if far_from(reaches[k], x0, x1, reach, thickness, ccd):
+            continue
+        if inv_mass[i] == 0.0:
+            return  # pinned: never moved by contact
         ob = obstacles[k]
         j = 5 * (pose_offset + k)
-        # far test, first in the world frame without a transform: a lower bound of phi(x1)
-        # (exact for plane and sphere); phi is 1-Lipschitz, so if it exceeds the path length
-        # no point of the path comes within the thickness (static obstacles: the local path
-        # is the world path)
-        r = x1 - wp.transform_get_translation(poses[j + 1])
-        lb = float(0.0)
-        if ob.kind == KIND_PLANE:
-            lb = wp.dot(r, wp.transform_get_translation(poses[j + 4]))
-        else:
-            lb = wp.length(r) - ob.bound
-        if lb >= reach:
-            if ccd == 0:
-                continue
-            if ob.moving == 0 and (lb - thickness) * (lb - thickness) >= wp.length_sq(x1 - x0):
-                continue
         p1 = wp.transform_point(poses[j + 3], x1)
-        phi = shape_phi(ob.kind, ob.size, p1)
-        if phi >= reach:
-            if ccd == 0:
-                continue
-            p0 = wp.transform_point(poses[j + 2], x0)
-            if (phi - thickness) * (phi - thickness) >= wp.length_sq(p1 - p0):
-                continue
         p0 = wp.transform_point(poses[j + 2], x0)
         phi, n = shape_sdf(ob.kind, ob.size, p1)
+        if phi >= reach:
+            # the exact local test (the world bound above is loose for boxes and moving shapes)
+            if ccd == 0:
+                continue
+            if (phi - thickness) * (phi - thickness) >= wp.length_sq(p1 - p0):
+                continue
         moved = False
         p_in = p1
         if ccd != 0 and ob.kind != KIND_PLANE:

@@ -20,12 +20,16 @@ obstacle's motion during the step is part of the relative path), with contact th
    side (open).
 3. In contact: the impulse of `warp_cloth.collision.response`.
 
-Distance cache (``apply`` only, static meshes): each vertex keeps a lower bound of its distance to
-each mesh (``gap``, from the last query, searched ``margin`` beyond the reach) and the position it
-ended the last step at (``last``). While the step starts exactly there and ``gap`` minus the path
-length stays above the reach, the vertex skips the BVH queries: the distance cannot have dropped
-by more than the distance moved. Anything else that moved the vertex in between (a state reset, a
-later correction) fails the ``last == x_start`` check and the vertex is queried again.
+Distance cache (``apply`` only): each vertex keeps a lower bound of its distance to each mesh
+(``gap``, from the last query, searched ``margin`` beyond the reach) and the position it ended the
+last step at (``last``). While the step starts exactly there (and, for a moving mesh, at the time
+the last ``apply`` ended: ``ObstacleReach.fresh``) and ``gap`` minus the length of the path in the
+mesh's frame stays above the reach, the vertex skips the BVH queries: the distance cannot have
+dropped by more than that. For a moving mesh the path length is bounded by the vertex's own motion
+plus the mesh's translation and rotation over the step (`warp_cloth.collision.motion.ObstacleReach`).
+Anything else that moved the vertex in between (a state reset, a later correction, another mesh
+of this kernel) fails the ``last == x_start`` check and the vertex is queried again. A vertex that
+touched a mesh last step queries without the margin (a tighter query; it would not skip anyway).
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .motion import ObstacleData
+from .motion import ObstacleData, ObstacleReach
 from .response import position_friction, respond
 
 
@@ -87,6 +91,7 @@ def closest(mid: wp.uint64, closed: int, p: wp.vec3, p_from: wp.vec3, center: wp
 def mesh_contact_kernel(
     obstacles: wp.array(dtype=ObstacleData),
     mesh_ids: wp.array(dtype=wp.uint64),
+    reaches: wp.array(dtype=ObstacleReach),
     poses: wp.array(dtype=wp.transform),
     pose_offset: int,
     x: wp.array(dtype=wp.vec3),
@@ -114,23 +119,29 @@ def mesh_contact_kernel(
     # distance cache (apply only): valid when this step starts where the last one ended
     caching = respond_velocity != 0
     valid = caching and last[i] == x0
-    step_len = wp.length(x1 - x0)
+    s = wp.length(x1 - x0)
     for k in range(num):
-        ob = obstacles[k]
-        mid = mesh_ids[k]
-        j = 5 * (pose_offset + k)
-        if valid and ob.moving == 0:
-            g = gap[i * num + k] - step_len  # a lower bound of the distance along the path
+        rb = reaches[k]
+        # the length of the vertex's path in the mesh's frame is at most `path`
+        # (ObstacleReach; just |x1 - x0| for a static mesh, no distance to the origin needed)
+        path = s
+        if rb.sweep != 0.0 or rb.turn != 0.0:
+            path = s + rb.sweep + rb.turn * (wp.length(x1 - rb.origin) + s + rb.sweep)
+        if valid and rb.fresh != 0:
+            g = gap[i * num + k] - path  # a lower bound of the distance along the path
             if g > reach:
                 gap[i * num + k] = g
                 continue
         # far test in the world frame (no transform): outside the bounding ball by more than
-        # the reach and, for a static mesh, by more than the path length
-        lb = wp.length(x1 - wp.transform_get_translation(poses[j + 1])) - ob.bound - reach
-        if lb > 0.0 and (ccd == 0 or (ob.moving == 0 and lb >= step_len)):
+        # the reach and than the path length
+        lb = wp.length(x1 - rb.origin) - rb.bound - reach
+        if lb > 0.0 and (ccd == 0 or lb >= path):
             if caching:
                 gap[i * num + k] = lb + reach
             continue
+        ob = obstacles[k]
+        mid = mesh_ids[k]
+        j = 5 * (pose_offset + k)
         p0 = wp.transform_point(poses[j + 2], x0)
         p1 = wp.transform_point(poses[j + 3], x1)
         d = p1 - p0
@@ -148,7 +159,12 @@ def mesh_contact_kernel(
             continue
         # closest point to the end position, as far as the path could reach (plus the cache
         # margin, so that a miss keeps the vertex out of the queries for a while)
-        radius = reach + len_d + margin
+        radius = reach + len_d
+        if caching and gap[i * num + k] > reach:
+            # not touching last step: look beyond the reach so that a miss
+            # keeps the vertex out of the next steps' queries; a touching vertex will most
+            # likely touch again, and a tighter query visits fewer BVH nodes
+            radius = radius + margin
         found, c, phi, n = closest(mid, ob.closed, p1, p0, ob.center, ob.size, radius)
         if not found:
             if caching:
@@ -194,7 +210,11 @@ def mesh_contact_kernel(
         if respond_velocity != 0:
             v[i] = vi
     if caching:
+        # a vertex this kernel moved may have moved towards another mesh by more than its path
+        # length: no cache for it next step (NaN never compares equal)
         last[i] = x1
+        if touched:
+            last[i] = wp.vec3(wp.nan)
 
 
 @wp.kernel

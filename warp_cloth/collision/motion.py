@@ -30,7 +30,7 @@ import numpy as np
 import warp as wp
 
 __all__ = [
-    "KeyframePath", "Motion", "ObstacleData", "obstacle_pose", "quat_from_axis_angle",
+    "KeyframePath", "Motion", "ObstacleData", "ObstacleReach", "obstacle_pose", "step_reach", "quat_from_axis_angle",
     "quat_between", "quat_multiply", "quat_rotate", "KIND_PLANE", "KIND_SPHERE", "KIND_BOX",
     "KIND_MESH",
 ]
@@ -299,6 +299,48 @@ def obstacle_pose(ob: ObstacleData, key_times: wp.array(dtype=wp.float64),
     return wp.transform(c, wp.normalize(q))
 
 
+@wp.struct
+class ObstacleReach:
+    """What the contact kernels' far test needs of one obstacle in one step, in the world frame
+    (a few floats, so that a vertex far from every obstacle loads little and transforms nothing).
+
+    A vertex at ``x0 -> x1`` with ``lb = |x1 - origin| - bound`` (plane: ``(x1 - origin) . normal``)
+    is at least ``lb`` from the obstacle at ``t1``, and its path in the obstacle's frame is at
+    most ``|x1 - x0| + sweep + turn (|x1 - origin| + |x1 - x0| + sweep)`` long (the translation
+    and rotation of the obstacle over the step act on the vertex's local position)."""
+
+    origin: wp.vec3  # world position of the local origin at t1
+    normal: wp.vec3  # world direction of the local +y axis at t1 (a plane's normal)
+    bound: float  # radius of a ball about the origin holding the shape (a plane: 0, unused)
+    plane: int  # 1: half-space test along ``normal``
+    sweep: float  # |c(t1) - c(t0)|, m (0 for a static obstacle)
+    turn: float  # 2 sin(theta / 2), theta the rotation over the step (0 for a static obstacle)
+    fresh: int  # 0: this step does not start where the last apply ended (moving-mesh cache)
+
+
+@wp.func
+def step_reach(T0: wp.transform, T1: wp.transform, bound: float, plane: int, moving: int,
+               fresh: int):
+    """The `ObstacleReach` of an obstacle moving from pose ``T0`` to ``T1`` over a step. The
+    bounds are rounded up (relative 1e-5 plus 1e-7 m / rad) to cover float32 rounding; a static
+    obstacle (``moving == 0``) gets exact zeros, which the far test treats as the cheap case."""
+    r = ObstacleReach()
+    r.origin = wp.transform_get_translation(T1)
+    r.normal = wp.transform_vector(T1, wp.vec3(0.0, 1.0, 0.0))
+    r.bound = bound
+    r.plane = plane
+    r.sweep = 0.0
+    r.turn = 0.0
+    r.fresh = fresh
+    if moving != 0:
+        r.sweep = wp.length(r.origin - wp.transform_get_translation(T0)) * 1.00001 + 1.0e-7
+        qr = wp.mul(wp.transform_get_rotation(T1), wp.quat_inverse(wp.transform_get_rotation(T0)))
+        r.turn = 2.0 * wp.length(wp.vec3(qr[0], qr[1], qr[2])) * 1.00001 + 1.0e-7
+    else:
+        r.fresh = 1  # a static obstacle's cache never goes stale
+    return r
+
+
 @wp.kernel
 def obstacle_poses_kernel(
     obstacles: wp.array(dtype=ObstacleData),
@@ -310,19 +352,33 @@ def obstacle_poses_kernel(
     dt: float,
     advance_clock: int,
     poses: wp.array(dtype=wp.transform),
+    reach: wp.array(dtype=ObstacleReach),
+    last_t1: wp.array(dtype=wp.float64),
 ):
     """Poses of every obstacle at the start and end of the step, once per step (one thread per
     obstacle): ``poses[5k + 0..4] = T(t0), T(t1), T(t0)^-1, T(t1)^-1`` and the world direction
-    of the local +y axis at t1 (a plane's normal) as the translation of the fifth."""
+    of the local +y axis at t1 (a plane's normal) as the translation of the fifth; ``reach[k]``
+    for the far test. ``advance_clock`` (``apply``) also records the step's end time, so the next
+    ``apply`` knows whether it starts where this one ended (``reach[k].fresh``)."""
     k = wp.tid()
+    ob = obstacles[k]
     t0 = time[0]
     t1 = t0 + wp.float64(dt)
     if advance_clock != 0 and k == 0:
         clock[0] = t1  # the next step's start time, for project_positions without a time
-    T0 = obstacle_pose(obstacles[k], key_times, key_offsets, key_rotations, t0)
-    T1 = obstacle_pose(obstacles[k], key_times, key_offsets, key_rotations, t1)
+    T0 = obstacle_pose(ob, key_times, key_offsets, key_rotations, t0)
+    T1 = obstacle_pose(ob, key_times, key_offsets, key_rotations, t1)
     poses[5 * k + 0] = T0
     poses[5 * k + 1] = T1
     poses[5 * k + 2] = wp.transform_inverse(T0)
     poses[5 * k + 3] = wp.transform_inverse(T1)
     poses[5 * k + 4] = wp.transform(wp.transform_vector(T1, wp.vec3(0.0, 1.0, 0.0)), wp.quat_identity())
+    fresh = int(0)
+    if last_t1[k] == t0:
+        fresh = 1
+    plane = int(0)
+    if ob.kind == KIND_PLANE:
+        plane = 1
+    reach[k] = step_reach(T0, T1, ob.bound, plane, ob.moving, fresh)
+    if advance_clock != 0:
+        last_t1[k] = t1
