@@ -12,7 +12,7 @@ import os
 
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+HERE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "warp_cloth", "assets")
 
 
 def torus(major: float = 0.25, minor: float = 0.08, nu: int = 30, nv: int = 16):

@@ -1,6 +1,6 @@
-"""A sheet falls onto a moving triangle-mesh obstacle (assets/torus.obj, 960 triangles).
+"""A sheet falls onto a moving triangle-mesh obstacle (warp_cloth/assets/torus.obj, 960 triangles).
 
-    python examples/mesh_obstacle.py --out mesh.usd [--frames 180 --mesh assets/torus.obj]
+    python examples/mesh_obstacle.py --out mesh.usd [--frames 180 --mesh warp_cloth/assets/torus.obj]
 
 The torus is a closed `MeshObstacle` queried through Warp's BVH; it rests, then slides 0.3 m and
 tilts 25 degrees along a `KeyframePath`, then comes back level. Any closed or open OBJ works
@@ -18,7 +18,7 @@ def main():
     p.add_argument("--out", default="mesh.usd")
     p.add_argument("--frames", type=int, default=180)
     p.add_argument("--res", type=int, default=32)
-    p.add_argument("--mesh", default=None, help="an .obj file (default: assets/torus.obj)")
+    p.add_argument("--mesh", default=None, help="an .obj file (default: warp_cloth/assets/torus.obj)")
     p.add_argument("--solver", default="explicit")
     p.add_argument("--device", default=None)
     args = p.parse_args()

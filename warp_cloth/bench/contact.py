@@ -6,7 +6,7 @@ The drape scene (`warp_cloth.collision.scenes.drape`: a free 1 m sheet, ``--res`
 - ``none``: no obstacle, no contact correction (the cloth falls freely: same step cost);
 - ``sphere``: the analytic `Sphere` (r = 0.3 m) of the scene;
 - ``sphere+plane``: the sphere and a ground plane (two analytic obstacles, one launch);
-- ``mesh sphere``: `MeshObstacle` of ``assets/sphere.obj`` (960 triangles) scaled to the same
+- ``mesh sphere``: `MeshObstacle` of ``warp_cloth/assets/sphere.obj`` (960 triangles) scaled to the same
   sphere, through Warp's BVH queries;
 - ``spinning sphere``: the analytic sphere spinning (adds the per-step pose launch).
 

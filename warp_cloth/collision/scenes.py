@@ -11,7 +11,7 @@ obstacles are written to the USD stage.
   slides off onto the floor (low friction).
 - ``spin``: a sheet drapes over a sphere that starts spinning about the vertical at ``start`` s;
   friction carries the cloth round.
-- ``mesh``: a sheet falls onto a torus (``assets/torus.obj``, 960 triangles) that then slides and
+- ``mesh``: a sheet falls onto a torus (``warp_cloth/assets/torus.obj``, 960 triangles) that then slides and
   tilts along a keyframed path.
 """
 
@@ -31,12 +31,12 @@ from .obstacles import Box, MeshObstacle, Plane, Sphere
 
 __all__ = ["drape", "table", "spin", "mesh", "sheet_model", "asset_path"]
 
-ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
-                      "assets")
+#: the meshes shipped with the package (``warp_cloth/assets``; ``assets/make_assets.py`` makes them)
+ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "assets")
 
 
 def asset_path(name: str) -> str:
-    """Path of a file in the repository's ``assets/`` folder."""
+    """Path of a mesh shipped in the package's ``assets/`` folder (installed with it)."""
     p = os.path.join(ASSETS, name)
     if not os.path.isfile(p):
         raise ValueError(f"asset {name!r} not found in {ASSETS}; run python assets/make_assets.py")
@@ -139,7 +139,7 @@ def mesh(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
          position=(0.0, 0.45, 0.0), path: KeyframePath | None = None, ground: bool = True,
          thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
          restitution: float = 0.0, height: float = 0.65, **model_args):
-    """A sheet dropped on a triangle-mesh obstacle (default ``assets/torus.obj``) that moves along
+    """A sheet dropped on a triangle-mesh obstacle (default ``warp_cloth/assets/torus.obj``) that moves along
     a keyframed ``path`` (default `torus_path`), over a floor if ``ground``."""
     model = sheet_model(height=height, **model_args)
     ob = MeshObstacle(mesh_file or asset_path("torus.obj"), position=position, scale=scale,
