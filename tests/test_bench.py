@@ -76,3 +76,17 @@ def test_stability_end_to_end(tmp_path):
     assert {r["status"] for r in rows} <= {"S", "O", "D"}
     assert "D" in {r["status"] for r in rows} and "S" in {r["status"] for r in rows}
     assert (tmp_path / "stability.png").stat().st_size > 1000
+
+
+def test_tradeoff_without_matplotlib_still_writes_table_and_csv(tmp_path, monkeypatch):
+    monkeypatch.setenv("WARP_CLOTH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(tradeoff, "have_matplotlib", lambda: False)
+    monkeypatch.setattr(stability, "have_matplotlib", lambda: False)
+    out = tmp_path / "bo"
+    assert tradeoff.main(["--res", "3", "--duration", "0.1", "--ref-substeps", "2", "--methods",
+                          "explicit", "--out-dir", str(out), "--quick", "--no-progress"]) == 0
+    assert stability.main(["--methods", "explicit", "--res", "3", "--duration", "0.05", "--quick",
+                           "--out-dir", str(out)]) == 0
+    names = set(os.listdir(out))
+    assert {"tradeoff_hanging.csv", "tradeoff_hanging.md", "stability.csv", "stability.md"} <= names
+    assert not any(n.endswith(".png") for n in names)
