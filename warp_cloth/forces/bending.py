@@ -279,32 +279,20 @@ class DihedralBending(_QuadTerm):
 
 # ------------------------------------------------------------------------------ quadratic
 @wp.kernel
-def quadratic_forces_kernel(
+def quadratic_apply_kernel(
     x: wp.array(dtype=wp.vec3),
     quads: wp.array2d(dtype=wp.int32),
     w: wp.array(dtype=wp.vec4),
-    f: wp.array(dtype=wp.vec3),
-):
-    """``f = -Q x`` per quad with ``Q = w w^T (x) I`` (``w = sqrt(3k/(A0+A1)) K``)."""
-    q = wp.tid()
-    wq = w[q]
-    s = wq[0] * x[quads[q, 0]] + wq[1] * x[quads[q, 1]] + wq[2] * x[quads[q, 2]] + wq[3] * x[quads[q, 3]]
-    for i in range(4):
-        wp.atomic_sub(f, quads[q, i], wq[i] * s)
-
-
-@wp.kernel
-def quadratic_matvec_kernel(
-    x: wp.array(dtype=wp.vec3),
-    quads: wp.array2d(dtype=wp.int32),
-    w: wp.array(dtype=wp.vec4),
+    sign: float,
     out: wp.array(dtype=wp.vec3),
 ):
+    """``out += sign Q x`` per quad with ``Q = w w^T (x) I`` (``w = sqrt(3k/(A0+A1)) K``):
+    ``sign = -1`` gives the forces ``f = -Q x``, ``sign = +1`` the Hessian product."""
     q = wp.tid()
     wq = w[q]
     s = wq[0] * x[quads[q, 0]] + wq[1] * x[quads[q, 1]] + wq[2] * x[quads[q, 2]] + wq[3] * x[quads[q, 3]]
     for i in range(4):
-        wp.atomic_add(out, quads[q, i], wq[i] * s)
+        wp.atomic_add(out, quads[q, i], (sign * wq[i]) * s)
 
 
 @wp.kernel
@@ -380,7 +368,7 @@ class QuadraticBending(_QuadTerm):
 
     def eval(self, x, v=None, f=None, time=None, **_):
         if self.num_quads and self.k > 0:
-            wp.launch(quadratic_forces_kernel, self.num_quads, [x, self.quads, self.w, f],
+            wp.launch(quadratic_apply_kernel, self.num_quads, [x, self.quads, self.w, -1.0, f],
                       device=self.device)
 
     def eval_with_hessian(self, x, f):
@@ -394,7 +382,7 @@ class QuadraticBending(_QuadTerm):
     def matvec_add(self, x, out):
         """``out += Q x`` (exact)."""
         if self.num_quads and self.k > 0:
-            wp.launch(quadratic_matvec_kernel, self.num_quads, [x, self.quads, self.w, out],
+            wp.launch(quadratic_apply_kernel, self.num_quads, [x, self.quads, self.w, 1.0, out],
                       device=self.device)
 
     def add_diagonal(self, diag):
