@@ -106,7 +106,7 @@ def run_config(scene_name, scene_params, config, frames, fps, sample_frames, ref
     pos, st, div = simulate(scene_name, scene_params, config, frames, fps, sample_frames, repeats)
     if pos is None:
         return Result(config, True, div, math.nan, math.nan, math.nan, math.nan, math.nan)
-    steps_time = (frames - 2) / fps  # frames after the first stepped one (which includes compile)
+    steps_time = max(st.timed_frames, 1) / fps  # frames timed (compile and graph recording excluded)
     err = np.linalg.norm(pos - ref_positions, axis=2) / size
     return Result(
         config, False, None, st.wall_s / steps_time, float(np.sqrt((err ** 2).mean())),
