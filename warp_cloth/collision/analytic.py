@@ -21,7 +21,7 @@ from __future__ import annotations
 import warp as wp
 
 from .motion import KIND_BOX, KIND_PLANE, KIND_SPHERE, ObstacleData, ObstacleReach
-from .response import position_friction, respond
+from .response import contact_outcome
 
 
 @wp.func
@@ -187,17 +187,12 @@ def analytic_contact_kernel(
         if phi < thickness:
             p1 = p1 + (thickness - phi) * n
             moved = True
-        if respond_velocity != 0 and (moved or phi < reach):
-            if not touched:
+        if moved or (respond_velocity != 0 and phi < reach):
+            if respond_velocity != 0 and not touched:
                 vi = v[i]
             touched = True
-            x1, vi = respond(p0, p1, n, poses[j], poses[j + 1], vi, dt, ob.restitution,
-                             ob.friction)
-        elif moved:
-            if ob.friction > 0.0:
-                p1 = position_friction(p0, p_in, p1, n, ob.friction)
-            x1 = wp.transform_point(poses[j + 1], p1)
-            touched = True
+            x1, vi = contact_outcome(p0, p_in, p1, n, poses[j], poses[j + 1], vi, dt,
+                                     ob.restitution, ob.friction, respond_velocity)
     if touched:
         x[i] = x1
         if respond_velocity != 0:

@@ -38,7 +38,7 @@ import numpy as np
 import warp as wp
 
 from .motion import ObstacleData, ObstacleReach
-from .response import position_friction, respond
+from .response import contact_outcome
 
 
 @wp.func
@@ -194,17 +194,12 @@ def mesh_contact_kernel(
             gap[i * num + k] = phi
             if moved:
                 gap[i * num + k] = 0.0
-        if respond_velocity != 0 and (moved or phi < reach):
-            if not touched:
+        if moved or (respond_velocity != 0 and phi < reach):
+            if respond_velocity != 0 and not touched:
                 vi = v[i]
             touched = True
-            x1, vi = respond(p0, p1, n, poses[j], poses[j + 1], vi, dt, ob.restitution,
-                             ob.friction)
-        elif moved:
-            if ob.friction > 0.0:
-                p1 = position_friction(p0, p_in, p1, n, ob.friction)
-            x1 = wp.transform_point(poses[j + 1], p1)
-            touched = True
+            x1, vi = contact_outcome(p0, p_in, p1, n, poses[j], poses[j + 1], vi, dt,
+                                     ob.restitution, ob.friction, respond_velocity)
     if touched:
         x[i] = x1
         if respond_velocity != 0:

@@ -71,3 +71,23 @@ def position_friction(p0: wp.vec3, p_in: wp.vec3, p_out: wp.vec3, n: wp.vec3, mu
     if lt <= cap:
         return p_out - d_t
     return p_out - (cap / lt) * d_t
+
+
+@wp.func
+def contact_outcome(p0: wp.vec3, p_in: wp.vec3, p1: wp.vec3, n: wp.vec3, T0: wp.transform,
+                    T1: wp.transform, v: wp.vec3, dt: float, mu_n: float, mu_t: float,
+                    respond_velocity: int):
+    """The end of one vertex-obstacle contact, shared by every obstacle kind.
+
+    With ``respond_velocity`` (``apply``): the notes' impulse and the matching tangential
+    position change (`respond`). Without (``project_positions``, inside position-based
+    iterations): the projected position with position-level Coulomb friction. ``p_in`` is the
+    end position before projection; all positions in the obstacle frame. Returns (world end
+    position, world velocity; ``v`` unchanged without a velocity response).
+    """
+    if respond_velocity != 0:
+        return respond(p0, p1, n, T0, T1, v, dt, mu_n, mu_t)
+    q = p1
+    if mu_t > 0.0:
+        q = position_friction(p0, p_in, p1, n, mu_t)
+    return wp.transform_point(T1, q), v
