@@ -451,3 +451,41 @@ def test_mesh_distance_cache_matches_uncached_on_moving_mesh(motion):
     assert (contact._gap.numpy() > reach).sum() > 50  # most vertices were skipping queries
     assert worst_c >= -PENETRATION_TOLERANCE and worst_u >= -PENETRATION_TOLERANCE
     assert np.abs(x_c - x_u).max() < 1e-6
+
+
+@pytest.mark.parametrize("solver_name", ["explicit", "pbd"])
+def test_static_world_frame_path_matches_general_path(solver_name):
+    """Static spheres and planes take a world-frame shortcut (`ObstacleReach.fast`: no transforms,
+    zero surface velocity); from the same states in contact, a step with the general local-frame
+    path gives the same result (to float32 rounding of the transforms)."""
+    model = sheet_model(res=10, size=0.7, height=0.7)
+    obs = [Sphere(0.15, (0.05, 0.45, 0.0)), Plane((0.3, 1.0, 0.0), (0.0, 0.42, 0.0))]
+    contact = ObstacleContact(model, obs, friction=0.3, restitution=0.2)
+    fast = contact.reaches.numpy().copy()  # not a view: the array is assigned below
+    general = fast.copy()
+    general["fast"] = 0
+    assert set(fast["fast"]) == {1, 2}
+    solver = make_solver(solver_name, model)
+    solver.add_correction(contact)
+    st = model.state()
+    dt = solver_dt(solver)
+    checked = np.zeros(2, dtype=int)
+    for k in range(int(round(0.5 / dt))):
+        if k % 25 == 0:
+            x, v, t = st.positions().copy(), st.velocities().copy(), st.t
+            ends = []
+            for record in (general, fast):  # the fast one last: the run goes on with it
+                contact.reaches.assign(record)
+                st.x.assign(x.astype(np.float32))
+                st.v.assign(v.astype(np.float32))
+                st.time.assign(np.array([t]))
+                solver.step(st, dt)
+                ends.append((st.positions().copy(), st.velocities().copy()))
+            (xg, vg), (xf, vf) = ends
+            phi = contact.signed_distances(xf, st.t)
+            checked += (phi < contact.thickness + contact.slack).sum(axis=1)
+            assert np.abs(xf - xg).max() < 1e-6
+            assert np.abs(vf - vg).max() < max(1e-4, 1e-6 / dt)
+        else:
+            solver.step(st, dt)
+    assert checked.min() > 20  # many compared steps had vertices on the sphere and on the plane

@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import warp as wp
 
-from .motion import KIND_BOX, KIND_PLANE, KIND_SPHERE, ObstacleData, ObstacleReach
-from .response import contact_outcome
+from .motion import (FAST_NONE, FAST_SPHERE, KIND_BOX, KIND_PLANE, KIND_SPHERE, ObstacleData,
+                     ObstacleReach)
+from .response import contact_outcome, outcome_in_frame
 
 
 @wp.func
@@ -137,6 +138,173 @@ def far_from(rb: ObstacleReach, x0: wp.vec3, x1: wp.vec3, reach: float, thicknes
     return gap >= s + rb.sweep + rb.turn * (wp.length(r) + s + rb.sweep)
 
 
+@wp.func
+def analytic_near(
+    ob: ObstacleData,
+    poses: wp.array(dtype=wp.transform),
+    j: int,
+    i: int,
+    x0: wp.vec3,
+    x1: wp.vec3,
+    v: wp.array(dtype=wp.vec3),
+    vi: wp.vec3,
+    touched: bool,
+    dt: float,
+    thickness: float,
+    slack: float,
+    respond_velocity: int,
+    ccd: int,
+):
+    """Steps 1-3 in the obstacle's frame (any analytic kind, moving or not; ``j``: its first
+    pose) for a vertex the far test did not reject. Returns (x1, vi, touched) updated."""
+    reach = thickness + slack
+    p1 = wp.transform_point(poses[j + 3], x1)
+    p0 = wp.transform_point(poses[j + 2], x0)
+    phi, n = shape_sdf(ob.kind, ob.size, p1)
+    if phi >= reach:
+        # the exact local test (the world bound is loose for boxes and moving shapes)
+        if ccd == 0:
+            return x1, vi, touched
+        if (phi - thickness) * (phi - thickness) >= wp.length_sq(p1 - p0):
+            return x1, vi, touched
+    moved = False
+    p_in = p1
+    if ccd != 0 and ob.kind != KIND_PLANE:
+        hit, h, nh = shape_ccd(ob.kind, ob.size, thickness, p0, p1)
+        if hit:
+            p1 = p1 + wp.max(-wp.dot(p1 - h, nh), 0.0) * nh
+            phi, n = shape_sdf(ob.kind, ob.size, p1)
+            moved = True
+    if phi < thickness:
+        p1 = p1 + (thickness - phi) * n
+        moved = True
+    if moved or (respond_velocity != 0 and phi < reach):
+        vr = vi
+        if respond_velocity != 0 and not touched:
+            vr = v[i]
+        xo, vo = contact_outcome(p0, p_in, p1, n, poses[j], poses[j + 1], vr, dt,
+                                 ob.restitution, ob.friction, respond_velocity)
+        return xo, vo, True
+    return x1, vi, touched
+
+
+@wp.func
+def static_near(
+    rb: ObstacleReach,
+    i: int,
+    x0: wp.vec3,
+    x1: wp.vec3,
+    v: wp.array(dtype=wp.vec3),
+    vi: wp.vec3,
+    touched: bool,
+    thickness: float,
+    slack: float,
+    respond_velocity: int,
+    ccd: int,
+):
+    """`analytic_near` for a static sphere or plane (``rb.fast``), in the world frame: the same
+    tests and outcome with the transforms and the (zero) surface velocity left out. Sphere:
+    centre ``rb.origin``, radius ``rb.bound``; plane: point ``rb.origin``, normal ``rb.normal``.
+    Such a vertex arrives here only when within reach (`far_from` is exact for both)."""
+    reach = thickness + slack
+    p1 = x1 - rb.origin
+    p0 = x0 - rb.origin
+    phi = float(0.0)
+    n = rb.normal
+    size = wp.vec3(rb.bound, 0.0, 0.0)
+    if rb.fast == FAST_SPHERE:
+        phi, n = shape_sdf(KIND_SPHERE, size, p1)
+    else:
+        phi = wp.dot(p1, n)
+    moved = False
+    p_in = p1
+    if ccd != 0 and rb.fast == FAST_SPHERE:
+        hit, h, nh = shape_ccd(KIND_SPHERE, size, thickness, p0, p1)
+        if hit:
+            p1 = p1 + wp.max(-wp.dot(p1 - h, nh), 0.0) * nh
+            phi, n = shape_sdf(KIND_SPHERE, size, p1)
+            moved = True
+    if phi < thickness:
+        p1 = p1 + (thickness - phi) * n
+        moved = True
+    if moved or (respond_velocity != 0 and phi < reach):
+        vr = vi
+        if respond_velocity != 0 and not touched:
+            vr = v[i]
+        q, vo = outcome_in_frame(p0, p_in, p1, n, vr, wp.vec3(0.0), n, rb.restitution,
+                                 rb.friction, respond_velocity)
+        return q + rb.origin, vo, True
+    return x1, vi, touched
+
+
+@wp.func
+def analytic_vertex(
+    obstacles: wp.array(dtype=ObstacleData),
+    reaches: wp.array(dtype=ObstacleReach),
+    poses: wp.array(dtype=wp.transform),
+    pose_offset: int,
+    i: int,
+    x0: wp.vec3,
+    x1: wp.vec3,
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    dt: float,
+    thickness: float,
+    slack: float,
+    respond_velocity: int,
+    ccd: int,
+):
+    """Contact of vertex ``i`` (path ``x0 -> x1``) with every analytic obstacle. Returns (end
+    position, velocity, touched); ``v[i]`` is read only when touched, and the caller writes both
+    back only then (so a far vertex costs its far tests and nothing else)."""
+    vi = wp.vec3(0.0)
+    reach = thickness + slack
+    # far tests first, in a loop that carries one integer (most vertices stop after it)
+    near = int(0)
+    for k in range(reaches.shape[0]):
+        if not far_from(reaches[k], x0, x1, reach, thickness, ccd):
+            near = near + 1
+    if near == 0 or inv_mass[i] == 0.0:  # pinned vertices are never moved by contact
+        return x1, vi, False
+    return analytic_vertex_near(obstacles, reaches, poses, pose_offset, i, x0, x1, v, dt,
+                                thickness, slack, respond_velocity, ccd)
+
+
+@wp.func
+def analytic_vertex_near(
+    obstacles: wp.array(dtype=ObstacleData),
+    reaches: wp.array(dtype=ObstacleReach),
+    poses: wp.array(dtype=wp.transform),
+    pose_offset: int,
+    i: int,
+    x0: wp.vec3,
+    x1: wp.vec3,
+    v: wp.array(dtype=wp.vec3),
+    dt: float,
+    thickness: float,
+    slack: float,
+    respond_velocity: int,
+    ccd: int,
+):
+    """`analytic_vertex` for a vertex within reach of at least one obstacle: each obstacle in
+    turn (the far test again, as an earlier obstacle may have moved the vertex)."""
+    vi = wp.vec3(0.0)
+    touched = bool(False)
+    reach = thickness + slack
+    for k in range(reaches.shape[0]):
+        rb = reaches[k]
+        if far_from(rb, x0, x1, reach, thickness, ccd):
+            continue
+        if rb.fast != FAST_NONE:
+            x1, vi, touched = static_near(rb, i, x0, x1, v, vi, touched, thickness, slack,
+                                          respond_velocity, ccd)
+        else:
+            x1, vi, touched = analytic_near(obstacles[k], poses, 5 * (pose_offset + k), i, x0,
+                                            x1, v, vi, touched, dt, thickness, slack,
+                                            respond_velocity, ccd)
+    return x1, vi, touched
+
+
 @wp.kernel
 def analytic_contact_kernel(
     obstacles: wp.array(dtype=ObstacleData),
@@ -154,45 +322,8 @@ def analytic_contact_kernel(
     ccd: int,
 ):
     i = wp.tid()
-    x0 = x_start[i]
-    x1 = x[i]
-    vi = wp.vec3(0.0)
-    touched = bool(False)  # read v and write back only for vertices near an obstacle
-    reach = thickness + slack
-    for k in range(reaches.shape[0]):
-        # far test first (most vertices stop here, having loaded x, x_start and a few floats)
-        if far_from(reaches[k], x0, x1, reach, thickness, ccd):
-            continue
-        if inv_mass[i] == 0.0:
-            return  # pinned: never moved by contact
-        ob = obstacles[k]
-        j = 5 * (pose_offset + k)
-        p1 = wp.transform_point(poses[j + 3], x1)
-        p0 = wp.transform_point(poses[j + 2], x0)
-        phi, n = shape_sdf(ob.kind, ob.size, p1)
-        if phi >= reach:
-            # the exact local test (the world bound above is loose for boxes and moving shapes)
-            if ccd == 0:
-                continue
-            if (phi - thickness) * (phi - thickness) >= wp.length_sq(p1 - p0):
-                continue
-        moved = False
-        p_in = p1
-        if ccd != 0 and ob.kind != KIND_PLANE:
-            hit, h, nh = shape_ccd(ob.kind, ob.size, thickness, p0, p1)
-            if hit:
-                p1 = p1 + wp.max(-wp.dot(p1 - h, nh), 0.0) * nh
-                phi, n = shape_sdf(ob.kind, ob.size, p1)
-                moved = True
-        if phi < thickness:
-            p1 = p1 + (thickness - phi) * n
-            moved = True
-        if moved or (respond_velocity != 0 and phi < reach):
-            if respond_velocity != 0 and not touched:
-                vi = v[i]
-            touched = True
-            x1, vi = contact_outcome(p0, p_in, p1, n, poses[j], poses[j + 1], vi, dt,
-                                     ob.restitution, ob.friction, respond_velocity)
+    x1, vi, touched = analytic_vertex(obstacles, reaches, poses, pose_offset, i, x_start[i], x[i],
+                                      v, inv_mass, dt, thickness, slack, respond_velocity, ccd)
     if touched:
         x[i] = x1
         if respond_velocity != 0:

@@ -181,10 +181,10 @@ class ObstacleContact:
         self.poses = wp.array(poses, dtype=wp.transform, device=d)
         # far-test records (world frame, at the end of the step); the pose launch rewrites
         # those of moving obstacles every step, static ones keep these
-        from .motion import ObstacleReach, KIND_PLANE
+        from .motion import FAST_NONE, FAST_PLANE, FAST_SPHERE, KIND_PLANE, KIND_SPHERE, ObstacleReach
 
         reaches = []
-        for ob in ordered:
+        for ob, data in zip(ordered, self._data.numpy()):
             c, q = ob.pose(0.0)
             r = ObstacleReach()
             r.origin = wp.vec3(*c)
@@ -194,6 +194,11 @@ class ObstacleContact:
             r.sweep = 0.0
             r.turn = 0.0
             r.fresh = 1
+            r.fast = FAST_NONE
+            if not ob.moving:
+                r.fast = {KIND_SPHERE: FAST_SPHERE, KIND_PLANE: FAST_PLANE}.get(ob.kind, FAST_NONE)
+            r.friction = float(data["friction"])
+            r.restitution = float(data["restitution"])
             reaches.append(r)
         self.reaches = wp.array(reaches, dtype=ObstacleReach, device=d)
         self._last_t1 = wp.array(np.full(len(ordered), np.nan), dtype=wp.float64, device=d)
@@ -221,8 +226,7 @@ class ObstacleContact:
         ``time``: the device time array of the step's start (default: the contact's clock)."""
         self._launch(x, x_start, x, self.clock if time is None else time, float(dt), 0)
 
-    def _launch(self, x, x_start, v, time, dt, respond):
-        m = self.model
+    def _poses(self, time, dt, respond):
         if self.moving:
             from .motion import obstacle_poses_kernel
 
@@ -230,6 +234,10 @@ class ObstacleContact:
                       [self._data, self.key_times, self.key_offsets, self.key_rotations, time,
                        self.clock, dt, respond, self.poses, self.reaches, self._last_t1],
                       device=self.device)
+
+    def _launch(self, x, x_start, v, time, dt, respond):
+        m = self.model
+        self._poses(time, dt, respond)
         common = [x, x_start, v, m.inv_mass, dt, self.thickness, self.slack, respond,
                   int(self.ccd)]
         if self._analytic_data is not None:

@@ -87,15 +87,16 @@ def closest(mid: wp.uint64, closed: int, p: wp.vec3, p_from: wp.vec3, center: wp
     return True, c, phi, n
 
 
-@wp.kernel
-def mesh_contact_kernel(
+@wp.func
+def mesh_vertex(
     obstacles: wp.array(dtype=ObstacleData),
     mesh_ids: wp.array(dtype=wp.uint64),
     reaches: wp.array(dtype=ObstacleReach),
     poses: wp.array(dtype=wp.transform),
     pose_offset: int,
-    x: wp.array(dtype=wp.vec3),
-    x_start: wp.array(dtype=wp.vec3),
+    i: int,
+    x0: wp.vec3,
+    x1: wp.vec3,
     v: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     dt: float,
@@ -107,12 +108,11 @@ def mesh_contact_kernel(
     last: wp.array(dtype=wp.vec3),
     margin: float,
 ):
-    i = wp.tid()
-    if inv_mass[i] == 0.0:
-        return
-    x0 = x_start[i]
-    x1 = x[i]
+    """Contact of vertex ``i`` (path ``x0 -> x1``) with every mesh obstacle; maintains the
+    distance cache. Returns (end position, velocity, touched) like `analytic_vertex`."""
     vi = wp.vec3(0.0)
+    if inv_mass[i] == 0.0:
+        return x1, vi, False
     touched = bool(False)  # read v and write back only for vertices near an obstacle
     reach = thickness + slack
     num = obstacles.shape[0]
@@ -200,16 +200,42 @@ def mesh_contact_kernel(
             touched = True
             x1, vi = contact_outcome(p0, p_in, p1, n, poses[j], poses[j + 1], vi, dt,
                                      ob.restitution, ob.friction, respond_velocity)
-    if touched:
-        x[i] = x1
-        if respond_velocity != 0:
-            v[i] = vi
     if caching:
         # a vertex this kernel moved may have moved towards another mesh by more than its path
         # length: no cache for it next step (NaN never compares equal)
         last[i] = x1
         if touched:
             last[i] = wp.vec3(wp.nan)
+    return x1, vi, touched
+
+@wp.kernel
+def mesh_contact_kernel(
+    obstacles: wp.array(dtype=ObstacleData),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    reaches: wp.array(dtype=ObstacleReach),
+    poses: wp.array(dtype=wp.transform),
+    pose_offset: int,
+    x: wp.array(dtype=wp.vec3),
+    x_start: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    dt: float,
+    thickness: float,
+    slack: float,
+    respond_velocity: int,
+    ccd: int,
+    gap: wp.array(dtype=float),
+    last: wp.array(dtype=wp.vec3),
+    margin: float,
+):
+    i = wp.tid()
+    x1, vi, touched = mesh_vertex(obstacles, mesh_ids, reaches, poses, pose_offset, i, x_start[i],
+                                  x[i], v, inv_mass, dt, thickness, slack, respond_velocity, ccd,
+                                  gap, last, margin)
+    if touched:
+        x[i] = x1
+        if respond_velocity != 0:
+            v[i] = vi
 
 
 @wp.kernel

@@ -32,13 +32,18 @@ import warp as wp
 __all__ = [
     "KeyframePath", "Motion", "ObstacleData", "ObstacleReach", "obstacle_pose", "step_reach", "quat_from_axis_angle",
     "quat_between", "quat_multiply", "quat_rotate", "KIND_PLANE", "KIND_SPHERE", "KIND_BOX",
-    "KIND_MESH",
+    "KIND_MESH", "FAST_NONE", "FAST_SPHERE", "FAST_PLANE",
 ]
 
 KIND_PLANE = 0
 KIND_SPHERE = 1
 KIND_BOX = 2
 KIND_MESH = 3
+
+#: `ObstacleReach.fast` values
+FAST_NONE = 0
+FAST_SPHERE = 1
+FAST_PLANE = 2
 
 TWO_PI = 2.0 * math.pi
 
@@ -316,11 +321,15 @@ class ObstacleReach:
     sweep: float  # |c(t1) - c(t0)|, m (0 for a static obstacle)
     turn: float  # 2 sin(theta / 2), theta the rotation over the step (0 for a static obstacle)
     fresh: int  # 0: this step does not start where the last apply ended (moving-mesh cache)
+    fast: int  # FAST_SPHERE / FAST_PLANE: a static sphere (origin, bound = radius) or plane
+    #            (origin, normal) handled in the world frame; 0: the general local-frame path
+    friction: float  # mu_T (copied here so the world-frame paths need nothing else)
+    restitution: float  # mu_N
 
 
 @wp.func
-def step_reach(T0: wp.transform, T1: wp.transform, bound: float, plane: int, moving: int,
-               fresh: int):
+def step_reach(T0: wp.transform, T1: wp.transform, bound: float, kind: int, moving: int,
+               fresh: int, friction: float, restitution: float):
     """The `ObstacleReach` of an obstacle moving from pose ``T0`` to ``T1`` over a step. The
     bounds are rounded up (relative 1e-5 plus 1e-7 m / rad) to cover float32 rounding; a static
     obstacle (``moving == 0``) gets exact zeros, which the far test treats as the cheap case."""
@@ -328,16 +337,25 @@ def step_reach(T0: wp.transform, T1: wp.transform, bound: float, plane: int, mov
     r.origin = wp.transform_get_translation(T1)
     r.normal = wp.transform_vector(T1, wp.vec3(0.0, 1.0, 0.0))
     r.bound = bound
-    r.plane = plane
+    r.plane = int(0)
+    if kind == KIND_PLANE:
+        r.plane = 1
+    r.friction = friction
+    r.restitution = restitution
     r.sweep = 0.0
     r.turn = 0.0
     r.fresh = fresh
+    r.fast = FAST_NONE
     if moving != 0:
         r.sweep = wp.length(r.origin - wp.transform_get_translation(T0)) * 1.00001 + 1.0e-7
         qr = wp.mul(wp.transform_get_rotation(T1), wp.quat_inverse(wp.transform_get_rotation(T0)))
         r.turn = 2.0 * wp.length(wp.vec3(qr[0], qr[1], qr[2])) * 1.00001 + 1.0e-7
     else:
         r.fresh = 1  # a static obstacle's cache never goes stale
+        if kind == KIND_SPHERE:
+            r.fast = FAST_SPHERE
+        elif kind == KIND_PLANE:
+            r.fast = FAST_PLANE
     return r
 
 
@@ -376,9 +394,7 @@ def obstacle_poses_kernel(
     fresh = int(0)
     if last_t1[k] == t0:
         fresh = 1
-    plane = int(0)
-    if ob.kind == KIND_PLANE:
-        plane = 1
-    reach[k] = step_reach(T0, T1, ob.bound, plane, ob.moving, fresh)
+    reach[k] = step_reach(T0, T1, ob.bound, ob.kind, ob.moving, fresh, ob.friction,
+                          ob.restitution)
     if advance_clock != 0:
         last_t1[k] = t1

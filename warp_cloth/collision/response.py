@@ -39,24 +39,6 @@ def impulse(v: wp.vec3, vs: wp.vec3, n: wp.vec3, mu_n: float, mu_t: float):
 
 
 @wp.func
-def respond(p0: wp.vec3, p1: wp.vec3, n: wp.vec3, T0: wp.transform, T1: wp.transform,
-            v: wp.vec3, dt: float, mu_n: float, mu_t: float):
-    """Velocity impulse and matching tangential position change for a vertex in contact.
-
-    ``p0``, ``p1``: start / (projected) end position in the obstacle frame at t0 / t1; ``n``: the
-    local outward normal at ``p1``. Returns (world end position, world velocity).
-    """
-    nw = wp.transform_vector(T1, n)
-    x1 = wp.transform_point(T1, p1)
-    vs = (x1 - wp.transform_point(T0, p1)) / dt  # surface velocity of the material point at x1
-    vnew, a = impulse(v, vs, nw, mu_n, mu_t)
-    d = p1 - p0
-    d_t = d - wp.dot(d, n) * n
-    q = p1 - (1.0 - a) * d_t
-    return wp.transform_point(T1, q), vnew
-
-
-@wp.func
 def position_friction(p0: wp.vec3, p_in: wp.vec3, p_out: wp.vec3, n: wp.vec3, mu_t: float):
     """Coulomb friction at the position level (for `project_positions`, inside position-based
     iterations, where velocities are not available; Macklin et al. 2014, *Unified Particle
@@ -74,20 +56,39 @@ def position_friction(p0: wp.vec3, p_in: wp.vec3, p_out: wp.vec3, n: wp.vec3, mu
 
 
 @wp.func
-def contact_outcome(p0: wp.vec3, p_in: wp.vec3, p1: wp.vec3, n: wp.vec3, T0: wp.transform,
-                    T1: wp.transform, v: wp.vec3, dt: float, mu_n: float, mu_t: float,
-                    respond_velocity: int):
-    """The end of one vertex-obstacle contact, shared by every obstacle kind.
+def outcome_in_frame(p0: wp.vec3, p_in: wp.vec3, p1: wp.vec3, n: wp.vec3, v: wp.vec3,
+                     vs: wp.vec3, nv: wp.vec3, mu_n: float, mu_t: float, respond_velocity: int):
+    """The end of one vertex-obstacle contact in the obstacle's frame: (end position ``q`` in that
+    frame, new velocity). ``v``, ``vs`` and ``nv`` (the normal ``n`` in the velocities' frame) are
+    only used with ``respond_velocity``.
 
-    With ``respond_velocity`` (``apply``): the notes' impulse and the matching tangential
-    position change (`respond`). Without (``project_positions``, inside position-based
-    iterations): the projected position with position-level Coulomb friction. ``p_in`` is the
-    end position before projection; all positions in the obstacle frame. Returns (world end
-    position, world velocity; ``v`` unchanged without a velocity response).
-    """
+    With ``respond_velocity`` (``apply``): the notes' impulse (`impulse`) and the matching
+    tangential position change (the same factor ``a`` scales the tangential displacement since the
+    start of the step: a sticking vertex does not creep). Without (``project_positions``, inside
+    position-based iterations): the projected position with position-level Coulomb friction."""
     if respond_velocity != 0:
-        return respond(p0, p1, n, T0, T1, v, dt, mu_n, mu_t)
+        vnew, a = impulse(v, vs, nv, mu_n, mu_t)
+        d = p1 - p0
+        d_t = d - wp.dot(d, n) * n
+        return p1 - (1.0 - a) * d_t, vnew
     q = p1
     if mu_t > 0.0:
         q = position_friction(p0, p_in, p1, n, mu_t)
-    return wp.transform_point(T1, q), v
+    return q, v
+
+
+@wp.func
+def contact_outcome(p0: wp.vec3, p_in: wp.vec3, p1: wp.vec3, n: wp.vec3, T0: wp.transform,
+                    T1: wp.transform, v: wp.vec3, dt: float, mu_n: float, mu_t: float,
+                    respond_velocity: int):
+    """`outcome_in_frame` for an obstacle with poses ``T0`` / ``T1`` at the start / end of the
+    step (positions in its frame, velocities in the world's); the surface velocity is that of
+    the material point at the end position, ``(T1 p1 - T0 p1) / dt``. Returns (world end
+    position, world velocity; ``v`` unchanged without a velocity response)."""
+    vs = wp.vec3(0.0)
+    nw = n
+    if respond_velocity != 0:
+        nw = wp.transform_vector(T1, n)
+        vs = (wp.transform_point(T1, p1) - wp.transform_point(T0, p1)) / dt
+    q, vnew = outcome_in_frame(p0, p_in, p1, n, v, vs, nw, mu_n, mu_t, respond_velocity)
+    return wp.transform_point(T1, q), vnew
