@@ -1,5 +1,5 @@
-"""Contact kernel for triangle-mesh obstacles (`wp.Mesh` BVH queries): one thread per vertex, all
-mesh obstacles of a contact fused into one launch. Kept apart from the analytic kernels so that a
+"""Contact kernels for triangle-mesh obstacles (`wp.Mesh` BVH queries): all mesh obstacles of a
+contact in one far pass and one near pass (below). Kept apart from the analytic kernels so that a
 scene without a mesh obstacle never compiles it.
 
 Per vertex and mesh, in the mesh's frame (``p0`` at the pose of t0, ``p1`` at the pose of t1, so the
@@ -20,6 +20,13 @@ obstacle's motion during the step is part of the relative path), with contact th
    side (open).
 3. In contact: the impulse of `warp_cloth.collision.response`.
 
+Two passes per step. ``mesh_far_kernel`` (every vertex) runs the far tests below and appends
+the vertices that pass none to a list; ``mesh_near_kernel`` runs steps 0-3 for the listed
+vertices only, strided over ``N / NEAR_BATCH`` threads. (On Warp's CPU backend a kernel
+initialises all its variables and by-value call arguments for every thread, so a single kernel
+holding the near path cost every far vertex as much again; measured with ``warp-cloth bench
+contact``.)
+
 Distance cache (``apply`` only): each vertex keeps a lower bound of its distance to each mesh
 (``gap``, from the last query, searched ``margin`` beyond the reach) and the position it ended the
 last step at (``last``). While the step starts exactly there (and, for a moving mesh, at the time
@@ -30,6 +37,18 @@ plus the mesh's translation and rotation over the step (`warp_cloth.collision.mo
 Anything else that moved the vertex in between (a state reset, a later correction, another mesh
 of this kernel) fails the ``last == x_start`` check and the vertex is queried again. A vertex that
 touched a mesh last step queries without the margin (a tighter query; it would not skip anyway).
+
+Candidate cache (for vertices in contact, which the distance cache cannot skip): after a query
+at a local point ``q`` with signed distance ``phi_q``, ``|phi_q| > r`` (``r`` =
+``candidate_radius``, default half the thickness), the vertex keeps every face within
+``|phi_q| + 2 r`` of ``q`` (at most `MAX_CANDIDATES`; an AABB query and exact point-triangle
+distances). While both ends of a later path lie within ``r`` of ``q`` (in the mesh's frame, so
+this holds for moving meshes too), (a) a face not kept is farther from the end than the face
+closest to ``q`` (triangle inequality: ``> |phi_q| + 2r - r >= |phi_q| + r``), so the closest
+point among the kept faces is the mesh's closest point, and (b) every point of the path is at
+least ``|phi_q| - r > 0`` from the surface, so the path crosses none and keeps the sign of
+``phi_q``: no ray or point query is needed. A draped vertex refreshes only when it has slid
+``r``. Checked against the BVH queries step by step in ``tests/test_contact.py``.
 """
 
 from __future__ import annotations
@@ -87,67 +106,164 @@ def closest(mid: wp.uint64, closed: int, p: wp.vec3, p_from: wp.vec3, center: wp
     return True, c, phi, n
 
 
+#: most candidate faces a vertex keeps per mesh (more: no candidate cache for it)
+MAX_CANDIDATES = 8
+
+
+@wp.struct
+class MeshCache:
+    """Per-vertex, per-mesh caches of `mesh_vertex` (index ``i * num_meshes + k``)."""
+
+    gap: wp.array(dtype=float)  # lower bound of the distance at the end of the last step
+    last: wp.array(dtype=wp.vec3)  # where the vertex ended the last step (NaN: moved since)
+    margin: float  # how far beyond the reach a distance query looks (gap cache)
+    cand_q: wp.array(dtype=wp.vec3)  # local centre q of the candidate ball
+    cand_phi: wp.array(dtype=float)  # signed distance of q (|phi_q| > radius)
+    cand_count: wp.array(dtype=int)  # candidate faces (0: no cache)
+    cand_faces: wp.array(dtype=int)  # MAX_CANDIDATES per entry
+    radius: float  # m: the ball radius (0: candidate cache off)
+
+
 @wp.func
-def mesh_vertex(
+def closest_on_triangle(a: wp.vec3, b: wp.vec3, c: wp.vec3, p: wp.vec3):
+    """The point of triangle ``abc`` closest to ``p`` (Ericson, *Real-Time Collision Detection*,
+    5.1.5: Voronoi regions of the vertices, edges and face)."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return a
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= 0.0 and d4 <= d3:
+        return b
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        return a + (d1 / (d1 - d3)) * ab
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= 0.0 and d5 <= d6:
+        return c
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        return a + (d2 / (d2 - d6)) * ac
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        return b + ((d4 - d3) / ((d4 - d3) + (d5 - d6))) * (c - b)
+    denom = 1.0 / (va + vb + vc)
+    return a + (vb * denom) * ab + (vc * denom) * ac
+
+
+@wp.func
+def face_closest(mid: wp.uint64, f: int, p: wp.vec3):
+    return closest_on_triangle(wp.mesh_get_point(mid, 3 * f), wp.mesh_get_point(mid, 3 * f + 1),
+                               wp.mesh_get_point(mid, 3 * f + 2), p)
+
+
+@wp.func
+def cached_closest(mid: wp.uint64, cache: MeshCache, ci: int, p: wp.vec3):
+    """(closest point, signed distance, normal) of ``p`` from the candidate faces of entry ``ci``
+    (valid only for ``p`` in the entry's ball: see `mesh_vertex`)."""
+    cnt = cache.cand_count[ci]
+    best = float(1.0e30)
+    c = p
+    for j in range(cnt):
+        cj = face_closest(mid, cache.cand_faces[ci * MAX_CANDIDATES + j], p)
+        d2 = wp.length_sq(p - cj)
+        if d2 < best:
+            best = d2
+            c = cj
+    dist = wp.sqrt(best)
+    n = (p - c) / dist  # dist > 0: the ball holds no surface point
+    if cache.cand_phi[ci] < 0.0:
+        return c, -dist, -n
+    return c, dist, n
+
+
+@wp.func(inline=False)
+def refresh_candidates(mid: wp.uint64, closed: int, r: float, ci: int, q: wp.vec3,
+                       center: wp.vec3, half: wp.vec3, max_dist: float,
+                       cand_q: wp.array(dtype=wp.vec3), cand_phi: wp.array(dtype=float),
+                       cand_count: wp.array(dtype=int), cand_faces: wp.array(dtype=int)):
+    """New candidate ball at ``q``: its exact signed distance by a BVH query, then every face
+    within ``|phi_q| + 2 radius`` of ``q`` (an AABB query and exact triangle distances). No cache
+    when ``|phi_q| <= radius`` (the ball would reach the surface) or when there are more than
+    `MAX_CANDIDATES` faces."""
+    cand_count[ci] = 0
+    found, c, phi, n = closest(mid, closed, q, q, center, half, max_dist)
+    if not found or wp.abs(phi) <= r:
+        return
+    keep = wp.abs(phi) + 2.0 * r
+    lim = keep * (1.0 + 1.0e-5) + 1.0e-7  # float32 rounding of the distances below
+    query = wp.mesh_query_aabb(mid, q - wp.vec3(lim), q + wp.vec3(lim))
+    f = int(0)
+    cnt = int(0)
+    while wp.mesh_query_aabb_next(query, f):
+        if wp.length(q - face_closest(mid, f, q)) <= lim:
+            if cnt == MAX_CANDIDATES:
+                return  # too many: no cache (count stays 0)
+            cand_faces[ci * MAX_CANDIDATES + cnt] = f
+            cnt += 1
+    cand_q[ci] = q
+    cand_phi[ci] = phi
+    cand_count[ci] = cnt
+
+
+@wp.func
+def mesh_near(
     obstacles: wp.array(dtype=ObstacleData),
     mesh_ids: wp.array(dtype=wp.uint64),
-    reaches: wp.array(dtype=ObstacleReach),
     poses: wp.array(dtype=wp.transform),
-    pose_offset: int,
+    k: int,
+    j: int,
+    ci: int,
     i: int,
     x0: wp.vec3,
     x1: wp.vec3,
     v: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
+    vi: wp.vec3,
+    touched: bool,
     dt: float,
     thickness: float,
     slack: float,
     respond_velocity: int,
     ccd: int,
-    gap: wp.array(dtype=float),
-    last: wp.array(dtype=wp.vec3),
-    margin: float,
+    caching: bool,
+    cache: MeshCache,
 ):
-    """Contact of vertex ``i`` (path ``x0 -> x1``) with every mesh obstacle; maintains the
-    distance cache. Returns (end position, velocity, touched) like `analytic_vertex`."""
-    vi = wp.vec3(0.0)
-    if inv_mass[i] == 0.0:
-        return x1, vi, False
-    touched = bool(False)  # read v and write back only for vertices near an obstacle
+    """Steps 0-3 for vertex ``i`` and mesh ``k`` (``j``: its first pose, ``ci``: its cache
+    entry) once the far tests did not reject it. Returns (x1, vi, touched) updated.
+
+    Out of line, and given arrays rather than structs: Warp declares every variable of a
+    function at its top and initialises it on entry (structs and BVH query states included),
+    so the far path of every vertex must not carry this body's variables (measured: a call
+    that never ran, taking the obstacle's struct by value, doubled the far path's cost)."""
     reach = thickness + slack
-    num = obstacles.shape[0]
-    # distance cache (apply only): valid when this step starts where the last one ended
-    caching = respond_velocity != 0
-    valid = caching and last[i] == x0
-    s = wp.length(x1 - x0)
-    for k in range(num):
-        rb = reaches[k]
-        # the length of the vertex's path in the mesh's frame is at most `path`
-        # (ObstacleReach; just |x1 - x0| for a static mesh, no distance to the origin needed)
-        path = s
-        if rb.sweep != 0.0 or rb.turn != 0.0:
-            path = s + rb.sweep + rb.turn * (wp.length(x1 - rb.origin) + s + rb.sweep)
-        if valid and rb.fresh != 0:
-            g = gap[i * num + k] - path  # a lower bound of the distance along the path
-            if g > reach:
-                gap[i * num + k] = g
-                continue
-        # far test in the world frame (no transform): outside the bounding ball by more than
-        # the reach and than the path length
-        lb = wp.length(x1 - rb.origin) - rb.bound - reach
-        if lb > 0.0 and (ccd == 0 or lb >= path):
-            if caching:
-                gap[i * num + k] = lb + reach
-            continue
-        ob = obstacles[k]
-        mid = mesh_ids[k]
-        j = 5 * (pose_offset + k)
-        p0 = wp.transform_point(poses[j + 2], x0)
-        p1 = wp.transform_point(poses[j + 3], x1)
-        d = p1 - p0
-        len_d = wp.length(d)
-        if ccd == 0:
-            len_d = 0.0
+    ob = obstacles[k]
+    mid = mesh_ids[k]
+    p0 = wp.transform_point(poses[j + 2], x0)
+    p1 = wp.transform_point(poses[j + 3], x1)
+    d = p1 - p0
+    # candidate cache: the whole path inside the ball of the last refresh, so the closest
+    # point is on one of its faces and no surface is crossed (no ray query)
+    cached = False
+    if cache.cand_count[ci] > 0:
+        q = cache.cand_q[ci]
+        r2 = cache.radius * cache.radius
+        cached = wp.length_sq(p1 - q) <= r2 and wp.length_sq(p0 - q) <= r2
+    c = p1
+    phi = float(0.0)
+    n = wp.vec3(0.0, 1.0, 0.0)
+    len_d = float(0.0)
+    if cached:
+        c, phi, n = cached_closest(mid, cache, ci, p1)
+    else:
+        if ccd != 0:
+            len_d = wp.length(d)
         # cheap rejection: the path's box against the mesh's box grown by the reach
         lo = wp.min(p0, p1) - ob.center
         hi = wp.max(p0, p1) - ob.center
@@ -155,87 +271,198 @@ def mesh_vertex(
         if (lo[0] > ext[0] or lo[1] > ext[1] or lo[2] > ext[2]
                 or hi[0] < -ext[0] or hi[1] < -ext[1] or hi[2] < -ext[2]):
             if caching:
-                gap[i * num + k] = reach
-            continue
-        # closest point to the end position, as far as the path could reach (plus the cache
-        # margin, so that a miss keeps the vertex out of the queries for a while)
+                cache.gap[ci] = reach
+            return x1, vi, touched
+        # closest point to the end position, as far as the path could reach (plus the
+        # cache margin, so that a miss keeps the vertex out of the queries for a while)
         radius = reach + len_d
-        if caching and gap[i * num + k] > reach:
+        if caching and cache.gap[ci] > reach:
             # not touching last step: look beyond the reach so that a miss
             # keeps the vertex out of the next steps' queries; a touching vertex will most
             # likely touch again, and a tighter query visits fewer BVH nodes
-            radius = radius + margin
+            radius = radius + cache.margin
         found, c, phi, n = closest(mid, ob.closed, p1, p0, ob.center, ob.size, radius)
         if not found:
             if caching:
-                gap[i * num + k] = radius
-            continue  # no surface within reach of the end, so the path cannot cross one
-        moved = False
-        p_in = p1
-        if ccd != 0 and (phi < 0.0 or phi < len_d):
-            ray = wp.mesh_query_ray(mid, p0, d, 1.0)
-            if ray.result:
-                dn = wp.dot(d, ray.normal)
-                if ob.closed == 0 or dn < 0.0:
-                    ns = ray.normal  # the side the vertex came from
-                    if dn > 0.0:
-                        ns = -ray.normal
-                    h = p0 + ray.t * d
-                    p1 = p1 + wp.max(thickness - wp.dot(p1 - h, ns), 0.0) * ns
-                    moved = True
-                    found, c, phi, n = closest(mid, ob.closed, p1, p0, ob.center, ob.size, reach)
-                    if not found:
-                        n = ns
-                        phi = thickness
-        if phi < thickness:
-            p1 = c + thickness * n
-            moved = True
-        if caching:
-            gap[i * num + k] = phi
-            if moved:
-                gap[i * num + k] = 0.0
-        if moved or (respond_velocity != 0 and phi < reach):
-            if respond_velocity != 0 and not touched:
-                vi = v[i]
-            touched = True
-            x1, vi = contact_outcome(p0, p_in, p1, n, poses[j], poses[j + 1], vi, dt,
-                                     ob.restitution, ob.friction, respond_velocity)
+                cache.gap[ci] = radius
+            return x1, vi, touched  # no surface within reach of the end: no crossing
+    moved = False
+    p_in = p1
+    if not cached and ccd != 0 and (phi < 0.0 or phi < len_d):
+        ray = wp.mesh_query_ray(mid, p0, d, 1.0)
+        if ray.result:
+            dn = wp.dot(d, ray.normal)
+            if ob.closed == 0 or dn < 0.0:
+                ns = ray.normal  # the side the vertex came from
+                if dn > 0.0:
+                    ns = -ray.normal
+                h = p0 + ray.t * d
+                p1 = p1 + wp.max(thickness - wp.dot(p1 - h, ns), 0.0) * ns
+                moved = True
+                found, c, phi, n = closest(mid, ob.closed, p1, p0, ob.center, ob.size, reach)
+                if not found:
+                    n = ns
+                    phi = thickness
+    if phi < thickness:
+        p1 = c + thickness * n
+        moved = True
     if caching:
-        # a vertex this kernel moved may have moved towards another mesh by more than its path
-        # length: no cache for it next step (NaN never compares equal)
-        last[i] = x1
-        if touched:
-            last[i] = wp.vec3(wp.nan)
+        cache.gap[ci] = phi
+        if moved:
+            cache.gap[ci] = 0.0
+        if not cached and cache.radius > 0.0 and phi < reach + cache.radius:
+            refresh_candidates(mid, ob.closed, cache.radius, ci, p1, ob.center, ob.size,
+                               reach + 3.0 * cache.radius, cache.cand_q, cache.cand_phi,
+                               cache.cand_count, cache.cand_faces)
+    if moved or (respond_velocity != 0 and phi < reach):
+        if respond_velocity != 0 and not touched:
+            vi = v[i]
+        touched = True
+        x1, vi = contact_outcome(p0, p_in, p1, n, poses[j], poses[j + 1], vi, dt,
+                                 ob.restitution, ob.friction, respond_velocity)
     return x1, vi, touched
 
-@wp.kernel
-def mesh_contact_kernel(
+
+@wp.func
+def mesh_vertex_near(
     obstacles: wp.array(dtype=ObstacleData),
     mesh_ids: wp.array(dtype=wp.uint64),
-    reaches: wp.array(dtype=ObstacleReach),
     poses: wp.array(dtype=wp.transform),
     pose_offset: int,
+    mask: int,
+    i: int,
+    x0: wp.vec3,
+    x1: wp.vec3,
     x: wp.array(dtype=wp.vec3),
-    x_start: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
     dt: float,
     thickness: float,
     slack: float,
     respond_velocity: int,
     ccd: int,
-    gap: wp.array(dtype=float),
-    last: wp.array(dtype=wp.vec3),
-    margin: float,
+    caching: bool,
+    cache: MeshCache,
 ):
-    i = wp.tid()
-    x1, vi, touched = mesh_vertex(obstacles, mesh_ids, reaches, poses, pose_offset, i, x_start[i],
-                                  x[i], v, inv_mass, dt, thickness, slack, respond_velocity, ccd,
-                                  gap, last, margin)
+    """`mesh_near` for each mesh in ``mask`` (bit k: mesh k passed no far test; meshes from
+    the 31st on are always tried), then the vertex's writes."""
+    vi = wp.vec3(0.0)
+    touched = bool(False)
+    for k in range(obstacles.shape[0]):
+        if k < 31 and ((mask >> k) & 1) == 0:
+            continue
+        x1, vi, touched = mesh_near(obstacles, mesh_ids, poses, k, 5 * (pose_offset + k),
+                                    i * obstacles.shape[0] + k, i, x0, x1, v, vi, touched, dt,
+                                    thickness, slack, respond_velocity, ccd, caching, cache)
     if touched:
         x[i] = x1
         if respond_velocity != 0:
             v[i] = vi
+    if caching:
+        # a vertex this kernel moved may have moved towards another mesh by more than its path
+        # length: no cache for it next step (NaN never compares equal)
+        cache.last[i] = x1
+        if touched:
+            cache.last[i] = wp.vec3(wp.nan)
+
+
+#: vertices per thread of `mesh_near_kernel` (its threads: ceil(N / NEAR_BATCH))
+NEAR_BATCH = 8
+
+
+@wp.kernel
+def mesh_far_kernel(
+    reaches: wp.array(dtype=ObstacleReach),
+    x: wp.array(dtype=wp.vec3),
+    x_start: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    thickness: float,
+    slack: float,
+    respond_velocity: int,
+    ccd: int,
+    cache: MeshCache,
+    near_count: wp.array(dtype=int),
+    near_list: wp.array(dtype=int),
+    near_mask: wp.array(dtype=int),
+):
+    """Pass 1, every vertex: the far tests (distance cache, then bounding ball); a vertex that
+    passes none is appended to ``near_list`` with the meshes it needs in ``near_mask`` (bit k:
+    mesh k; meshes from the 31st on always). Kept apart from the near work: Warp initialises a
+    function's variables on entry and copies what a call takes by value, so a kernel that
+    also holds the near path pays for it on every vertex (measured: twice this pass)."""
+    i = wp.tid()
+    if inv_mass[i] == 0.0:
+        return
+    x0 = x_start[i]
+    x1 = x[i]
+    reach = thickness + slack
+    num = reaches.shape[0]
+    # distance cache (apply only): valid when this step starts where the last one ended
+    caching = respond_velocity != 0
+    valid = caching and cache.last[i] == x0
+    s = wp.length(x1 - x0)
+    mask = int(0)
+    for k in range(num):
+        ci = i * num + k
+        # the length of the vertex's path in the mesh's frame is at most `path`
+        # (ObstacleReach; just |x1 - x0| for a static mesh, no distance to the origin needed)
+        path = s
+        rb = reaches[k]
+        sweep = rb.sweep
+        turn = rb.turn
+        origin = rb.origin
+        if sweep != 0.0 or turn != 0.0:
+            path = s + sweep + turn * (wp.length(x1 - origin) + s + sweep)
+        if valid and rb.fresh != 0:
+            g = cache.gap[ci] - path  # a lower bound of the distance along the path
+            if g > reach:
+                cache.gap[ci] = g
+                continue
+        # far test in the world frame (no transform): outside the bounding ball by more than
+        # the reach and than the path length
+        lb = wp.length(x1 - origin) - rb.bound - reach
+        if lb > 0.0 and (ccd == 0 or lb >= path):
+            if caching:
+                cache.gap[ci] = lb + reach
+            continue
+        mask = mask | (1 << wp.min(k, 31))
+    if mask != 0:
+        slot = wp.atomic_add(near_count, 0, 1)
+        near_list[slot] = i
+        near_mask[slot] = mask
+    elif caching:
+        cache.last[i] = x1
+
+
+@wp.kernel
+def mesh_near_kernel(
+    obstacles: wp.array(dtype=ObstacleData),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    poses: wp.array(dtype=wp.transform),
+    pose_offset: int,
+    x: wp.array(dtype=wp.vec3),
+    x_start: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    dt: float,
+    thickness: float,
+    slack: float,
+    respond_velocity: int,
+    ccd: int,
+    cache: MeshCache,
+    near_count: wp.array(dtype=int),
+    near_list: wp.array(dtype=int),
+    near_mask: wp.array(dtype=int),
+    num_threads: int,
+):
+    """Pass 2: the listed vertices, strided over ``ceil(N / NEAR_BATCH)`` threads (the list's
+    length is known only on the device; a thread costs its set-up whether it has work or not,
+    so fewer threads than vertices)."""
+    t = wp.tid()
+    n = near_count[0]
+    for e in range(t, n, num_threads):
+        i = near_list[e]
+        mesh_vertex_near(obstacles, mesh_ids, poses, pose_offset, near_mask[e], i, x_start[i],
+                         x[i], x, v, dt, thickness, slack, respond_velocity, ccd,
+                         respond_velocity != 0, cache)
 
 
 @wp.kernel
