@@ -1,6 +1,7 @@
 """The speed/accuracy and stability harness: tiny end-to-end runs and the Pareto logic."""
 
 import csv
+import json
 import math
 import os
 
@@ -90,3 +91,26 @@ def test_tradeoff_without_matplotlib_still_writes_table_and_csv(tmp_path, monkey
     names = set(os.listdir(out))
     assert {"tradeoff_hanging.csv", "tradeoff_hanging.md", "stability.csv", "stability.md"} <= names
     assert not any(n.endswith(".png") for n in names)
+
+
+def test_contact_bench_equal_work_rows(capsys):
+    from warp_cloth.bench import contact
+
+    # 30 frames: the sheet (dropped 0.1 m above the sphere, lands after ~9) lies on it
+    argv = ["--res", "6", "--warmup", "30", "--frames", "1", "--rounds", "1",
+            "--solver", "explicit", "pbd", "--only", "sphere", "--json"]
+    assert contact.main(argv) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [(r["solver"], r["config"]) for r in rows] == [
+        ("explicit", "sphere"), ("explicit", contact.FLOOR), ("pbd", "sphere")]
+    for r in rows:
+        for k in ("ms_per_frame_without", "ms_per_frame_with"):
+            assert math.isfinite(r[k]) and r[k] > 0
+        assert math.isclose(r["overhead"], r["ms_per_frame_with"] / r["ms_per_frame_without"] - 1)
+        assert r["vertices"] == 49 and r["substeps"] >= 1 and r["captured"]
+        assert 0 < r["vertices_in_contact"] <= r["vertices"]
+    by = {r["config"]: r for r in rows if r["solver"] == "explicit"}
+    # the floor shares the baseline of the sphere row, has no target, and does the same contact
+    assert by[contact.FLOOR]["ms_per_frame_without"] == by["sphere"]["ms_per_frame_without"]
+    assert by[contact.FLOOR]["target"] is None and by["sphere"]["target"] == 0.20
+    assert by[contact.FLOOR]["floor_max_deviation"] < 1e-4
