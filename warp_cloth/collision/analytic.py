@@ -238,39 +238,6 @@ def static_near(
 
 
 @wp.func
-def analytic_vertex(
-    obstacles: wp.array(dtype=ObstacleData),
-    reaches: wp.array(dtype=ObstacleReach),
-    poses: wp.array(dtype=wp.transform),
-    pose_offset: int,
-    i: int,
-    x0: wp.vec3,
-    x1: wp.vec3,
-    v: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
-    dt: float,
-    thickness: float,
-    slack: float,
-    respond_velocity: int,
-    ccd: int,
-):
-    """Contact of vertex ``i`` (path ``x0 -> x1``) with every analytic obstacle. Returns (end
-    position, velocity, touched); ``v[i]`` is read only when touched, and the caller writes both
-    back only then (so a far vertex costs its far tests and nothing else)."""
-    vi = wp.vec3(0.0)
-    reach = thickness + slack
-    # far tests first, in a loop that carries one integer (most vertices stop after it)
-    near = int(0)
-    for k in range(reaches.shape[0]):
-        if not far_from(reaches[k], x0, x1, reach, thickness, ccd):
-            near = near + 1
-    if near == 0 or inv_mass[i] == 0.0:  # pinned vertices are never moved by contact
-        return x1, vi, False
-    return analytic_vertex_near(obstacles, reaches, poses, pose_offset, i, x0, x1, v, dt,
-                                thickness, slack, respond_velocity, ccd)
-
-
-@wp.func
 def analytic_vertex_near(
     obstacles: wp.array(dtype=ObstacleData),
     reaches: wp.array(dtype=ObstacleReach),
@@ -286,8 +253,9 @@ def analytic_vertex_near(
     respond_velocity: int,
     ccd: int,
 ):
-    """`analytic_vertex` for a vertex within reach of at least one obstacle: each obstacle in
-    turn (the far test again, as an earlier obstacle may have moved the vertex)."""
+    """Contact of vertex ``i`` (path ``x0 -> x1``) with every analytic obstacle it is within
+    reach of (the far test again per obstacle: an earlier one may have moved the vertex).
+    Returns (end position, velocity, touched); ``v[i]`` is read only when touched."""
     vi = wp.vec3(0.0)
     touched = bool(False)
     reach = thickness + slack
@@ -306,7 +274,34 @@ def analytic_vertex_near(
 
 
 @wp.kernel
-def analytic_contact_kernel(
+def analytic_far_kernel(
+    reaches: wp.array(dtype=ObstacleReach),
+    x: wp.array(dtype=wp.vec3),
+    x_start: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    thickness: float,
+    slack: float,
+    ccd: int,
+    margin: float,
+    near_count: wp.array(dtype=int),
+    near_list: wp.array(dtype=int),
+):
+    """Pass 1, every vertex: the far tests (``margin`` beyond the reach: for lists reused by
+    several position-based iterations); a vertex that passes none is appended to ``near_list``
+    (two passes: see `warp_cloth.collision.mesh_contact`)."""
+    i = wp.tid()
+    x0 = x_start[i]
+    x1 = x[i]
+    reach = thickness + slack + margin
+    for k in range(reaches.shape[0]):
+        if not far_from(reaches[k], x0, x1, reach, thickness + margin, ccd):
+            if inv_mass[i] != 0.0:  # pinned vertices are never moved by contact
+                near_list[wp.atomic_add(near_count, 0, 1)] = i
+            return
+
+
+@wp.kernel
+def analytic_near_kernel(
     obstacles: wp.array(dtype=ObstacleData),
     reaches: wp.array(dtype=ObstacleReach),
     poses: wp.array(dtype=wp.transform),
@@ -314,17 +309,24 @@ def analytic_contact_kernel(
     x: wp.array(dtype=wp.vec3),
     x_start: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
     dt: float,
     thickness: float,
     slack: float,
     respond_velocity: int,
     ccd: int,
+    near_count: wp.array(dtype=int),
+    near_list: wp.array(dtype=int),
+    num_threads: int,
 ):
-    i = wp.tid()
-    x1, vi, touched = analytic_vertex(obstacles, reaches, poses, pose_offset, i, x_start[i], x[i],
-                                      v, inv_mass, dt, thickness, slack, respond_velocity, ccd)
-    if touched:
-        x[i] = x1
-        if respond_velocity != 0:
-            v[i] = vi
+    """Pass 2: `analytic_vertex_near` for the listed vertices, strided over the threads."""
+    t = wp.tid()
+    n = near_count[0]
+    for e in range(t, n, num_threads):
+        i = near_list[e]
+        x1, vi, touched = analytic_vertex_near(obstacles, reaches, poses, pose_offset, i,
+                                               x_start[i], x[i], v, dt, thickness, slack,
+                                               respond_velocity, ccd)
+        if touched:
+            x[i] = x1
+            if respond_velocity != 0:
+                v[i] = vi

@@ -365,10 +365,6 @@ def mesh_vertex_near(
             cache.last[i] = wp.vec3(wp.nan)
 
 
-#: vertices per thread of `mesh_near_kernel` (its threads: ceil(N / NEAR_BATCH))
-NEAR_BATCH = 8
-
-
 @wp.kernel
 def mesh_far_kernel(
     reaches: wp.array(dtype=ObstacleReach),
@@ -379,6 +375,7 @@ def mesh_far_kernel(
     slack: float,
     respond_velocity: int,
     ccd: int,
+    margin: float,
     cache: MeshCache,
     near_count: wp.array(dtype=int),
     near_list: wp.array(dtype=int),
@@ -386,7 +383,9 @@ def mesh_far_kernel(
 ):
     """Pass 1, every vertex: the far tests (distance cache, then bounding ball); a vertex that
     passes none is appended to ``near_list`` with the meshes it needs in ``near_mask`` (bit k:
-    mesh k; meshes from the 31st on always). Kept apart from the near work: Warp initialises a
+    mesh k; meshes from the 31st on always). ``margin``: extra reach, for a list that
+    several position-based iterations reuse (the distance cache is used and kept only by
+    ``apply``, whose margin is 0). Kept apart from the near work: Warp initialises a
     function's variables on entry and copies what a call takes by value, so a kernel that
     also holds the near path pays for it on every vertex (measured: twice this pass)."""
     i = wp.tid()
@@ -394,7 +393,7 @@ def mesh_far_kernel(
         return
     x0 = x_start[i]
     x1 = x[i]
-    reach = thickness + slack
+    reach = thickness + slack + margin  # margin: lists reused by position-based iterations
     num = reaches.shape[0]
     # distance cache (apply only): valid when this step starts where the last one ended
     caching = respond_velocity != 0

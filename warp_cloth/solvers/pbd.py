@@ -351,6 +351,9 @@ class PositionBased(Solver):
         if self.use_lambda:
             self._lambda.zero_()
         fused = False
+        for c in projectors:  # contact: the vertices near obstacles, listed once per step
+            if hasattr(c, "begin_iterations"):
+                c.begin_iterations(x, self._x_start, dt)
         for it in range(iterations):
             if self.gauss_seidel:
                 offs = self.color_offsets
