@@ -534,3 +534,26 @@ def test_mesh_candidate_cache_matches_bvh_queries(motion):
             solver.step(st, dt)
     assert touching >= 5  # the cloth lay on the torus
     assert used > 20  # many compared steps started with cached candidates
+
+
+@pytest.mark.parametrize("mu, back", [(0.5, 2e-3), (0.1, 1e-3)])
+def test_iteration_planes_project_with_coulomb_friction(mu, back):
+    """Position-based iterations project onto contact planes made once per step
+    (`begin_iterations`, from the vertices the last `apply` listed): a vertex pushed 1 cm into a
+    plane returns to the thickness, and its 2 mm tangential slide is undone up to mu times the
+    normal correction (static: all of it; sliding: mu * 1 cm)."""
+    model, st = particles(np.array([[0.0, 0.004, 0.0]]))
+    contact = ObstacleContact(model, [Plane()], friction=mu)
+    contact.apply(st, wp.clone(st.x), 1e-3)  # projects it to the thickness and lists it
+    start = st.positions()
+    assert start[0, 1] == pytest.approx(contact.thickness, abs=1e-6)
+    x_start = wp.clone(st.x)
+    pred = start.copy()
+    pred[0] += [2e-3, -1e-2, 0.0]
+    x = wp.array(pred.astype(np.float32), dtype=wp.vec3)
+    contact.begin_iterations(x, x_start, 1e-3)
+    contact.project_positions(x, x_start, 1e-3)
+    out = x.numpy().astype(np.float64)
+    assert out[0, 1] == pytest.approx(contact.thickness, abs=1e-6)
+    assert out[0, 0] == pytest.approx(pred[0, 0] - back, abs=1e-6)
+    assert np.array_equal(out[1:], pred[1:])  # the far vertices were not listed

@@ -22,6 +22,7 @@ import warp as wp
 
 from .motion import (FAST_NONE, FAST_SPHERE, KIND_BOX, KIND_PLANE, KIND_SPHERE, ObstacleData,
                      ObstacleReach)
+from .planes import ContactPlanes
 from .response import contact_outcome, outcome_in_frame
 
 
@@ -282,21 +283,34 @@ def analytic_far_kernel(
     thickness: float,
     slack: float,
     ccd: int,
-    margin: float,
     near_count: wp.array(dtype=int),
     near_list: wp.array(dtype=int),
+    margin: float,
+    iter_count: wp.array(dtype=int),
+    iter_list: wp.array(dtype=int),
 ):
-    """Pass 1, every vertex: the far tests (``margin`` beyond the reach: for lists reused by
-    several position-based iterations); a vertex that passes none is appended to ``near_list``
-    (two passes: see `warp_cloth.collision.mesh_contact`)."""
+    """Pass 1, every vertex: the far tests; a vertex that passes none is appended to
+    ``near_list`` (two passes: see `warp_cloth.collision.mesh_contact`). With ``margin > 0`` a
+    vertex within the reach plus ``margin`` is also appended to ``iter_list``: the vertices the
+    next step's position-based iterations will test (`ObstacleContact.begin_iterations`)."""
     i = wp.tid()
+    if inv_mass[i] == 0.0:
+        return  # pinned vertices are never moved by contact
     x0 = x_start[i]
     x1 = x[i]
-    reach = thickness + slack + margin
+    reach = thickness + slack
     for k in range(reaches.shape[0]):
-        if not far_from(reaches[k], x0, x1, reach, thickness + margin, ccd):
-            if inv_mass[i] != 0.0:  # pinned vertices are never moved by contact
-                near_list[wp.atomic_add(near_count, 0, 1)] = i
+        if margin > 0.0:
+            if far_from(reaches[k], x0, x1, reach + margin, thickness + margin, ccd):
+                continue
+            iter_list[wp.atomic_add(iter_count, 0, 1)] = i
+            for kk in range(k, reaches.shape[0]):
+                if not far_from(reaches[kk], x0, x1, reach, thickness, ccd):
+                    near_list[wp.atomic_add(near_count, 0, 1)] = i
+                    return
+            return
+        if not far_from(reaches[k], x0, x1, reach, thickness, ccd):
+            near_list[wp.atomic_add(near_count, 0, 1)] = i
             return
 
 
@@ -330,3 +344,62 @@ def analytic_near_kernel(
             x[i] = x1
             if respond_velocity != 0:
                 v[i] = vi
+
+
+@wp.kernel
+def analytic_planes_kernel(
+    obstacles: wp.array(dtype=ObstacleData),
+    reaches: wp.array(dtype=ObstacleReach),
+    poses: wp.array(dtype=wp.transform),
+    x: wp.array(dtype=wp.vec3),
+    x_start: wp.array(dtype=wp.vec3),
+    thickness: float,
+    ccd: int,
+    near_count: wp.array(dtype=int),
+    near_list: wp.array(dtype=int),
+    num_threads: int,
+    planes: ContactPlanes,
+):
+    """The contact plane of each listed vertex and analytic obstacle (`warp_cloth.collision.
+    planes`): the continuous test, then the point at the thickness above the closest surface
+    point of the (possibly stopped) end position, in the world frame at ``t1``."""
+    t = wp.tid()
+    n_list = near_count[0]
+    num = obstacles.shape[0]
+    for e in range(t, n_list, num_threads):
+        i = near_list[e]
+        x0 = x_start[i]
+        x1 = x[i]
+        for k in range(num):
+            c = e * num + k
+            rb = reaches[k]
+            if rb.fast != FAST_NONE:  # static sphere or plane: in the world frame
+                p1 = x1 - rb.origin
+                n = rb.normal
+                phi = wp.dot(p1, n)
+                if rb.fast == FAST_SPHERE:
+                    size = wp.vec3(rb.bound, 0.0, 0.0)
+                    if ccd != 0:
+                        hit, h, nh = shape_ccd(KIND_SPHERE, size, thickness, x0 - rb.origin, p1)
+                        if hit:
+                            p1 = p1 + wp.max(-wp.dot(p1 - h, nh), 0.0) * nh
+                    phi, n = shape_sdf(KIND_SPHERE, size, p1)
+                planes.point[c] = rb.origin + p1 + (thickness - phi) * n
+                planes.normal[c] = n
+                planes.ref[c] = x0
+                planes.friction[c] = rb.friction
+                continue
+            ob = obstacles[k]
+            j = 5 * k
+            p1 = wp.transform_point(poses[j + 3], x1)
+            p0 = wp.transform_point(poses[j + 2], x0)
+            if ccd != 0 and ob.kind != KIND_PLANE:
+                hit, h, nh = shape_ccd(ob.kind, ob.size, thickness, p0, p1)
+                if hit:
+                    p1 = p1 + wp.max(-wp.dot(p1 - h, nh), 0.0) * nh
+            phi, n = shape_sdf(ob.kind, ob.size, p1)
+            T1 = poses[j + 1]
+            planes.point[c] = wp.transform_point(T1, p1 + (thickness - phi) * n)
+            planes.normal[c] = wp.transform_vector(T1, n)
+            planes.ref[c] = wp.transform_point(T1, p0)
+            planes.friction[c] = ob.friction

@@ -88,7 +88,7 @@ DEFAULT_RESTITUTION = 0.0
 PENETRATION_TOLERANCE = 1.0e-4
 #: vertices per thread of the near passes (their threads: ceil(N / NEAR_BATCH); on the CPU a
 #: thread costs its set-up whether its list entries exist or not)
-NEAR_BATCH = 8
+NEAR_BATCH = 32
 
 
 def _num(name, value, lo=0.0, hi=math.inf, lo_open=False):
@@ -152,7 +152,7 @@ class ObstacleContact:
         self.ccd = bool(ccd)
         self.cache_margin = _num("cache_margin", cache_margin, 0.0)
         #: m; extra reach of the lists `begin_iterations` makes for position-based iterations
-        self.iteration_margin = self.thickness
+        self.iteration_margin = 0.5 * self.thickness
         self.candidate_radius = (0.5 * self.thickness if candidate_radius is None
                                  else _num("candidate_radius", candidate_radius, 0.0))
         d = self.device
@@ -220,9 +220,12 @@ class ObstacleContact:
         n_v = model.num_vertices
         self._near_threads = max(1, -(-n_v // NEAR_BATCH))  # threads of the near passes
         self._lists = None  # (x, x_start, dt) of the lists `begin_iterations` made
+        self._a_planes = self._m_planes = None  # made on the first begin_iterations
         if self.analytic:
             self._a_count = wp.zeros(1, dtype=int, device=d)
             self._a_list = wp.zeros(n_v, dtype=int, device=d)
+            self._ai_count = wp.zeros(1, dtype=int, device=d)  # for the iterations
+            self._ai_list = wp.zeros(n_v, dtype=int, device=d)
         self._mesh_data = None
         if self.meshes:
             self._wp_meshes = [ob.wp_mesh(d) for ob in self.meshes]  # keep alive
@@ -257,28 +260,70 @@ class ObstacleContact:
         self._lists = None  # lists made for iterations are stale after the step
         dt = float(dt)
         self._poses(state.time, dt, 1)
-        self._far(state.x, x_start, 1, 0.0)
+        self._far(state.x, x_start, 1, self.iteration_margin)
         self._near(state.x, x_start, state.v, dt, 1)
 
     def begin_iterations(self, x, x_start, dt: float, time=None) -> None:
-        """Before position-based iterations: the obstacles' poses for the step and the list of
-        vertices whose path from ``x_start`` to ``x`` comes within the reach plus
-        ``iteration_margin`` of an obstacle; the `project_positions` calls that follow (until
-        the next `apply`) test only those. A vertex the iterations move farther than the margin
-        towards an obstacle is caught by the `apply` that ends the step, which tests all."""
+        """Before position-based iterations: the obstacles' poses for the step and a contact
+        plane (`warp_cloth.collision.planes`) for each vertex the last `apply` listed for
+        iterations (analytic obstacles: path within the reach plus ``iteration_margin``;
+        meshes: within the reach), from its path ``x_start -> x``; the `project_positions`
+        calls that follow (until the next `apply`) project only those, onto their planes.
+
+        The list comes from the last step's `apply`, which passes over every vertex anyway, so
+        the iterations add no pass of their own; it is a heuristic (a vertex that moves farther
+        than the margin in one step is missed by the iterations of that step, as are all in the
+        first step), not a guarantee: the `apply` that ends every step tests the exact geometry
+        of every vertex. Allocates the planes on its first call."""
         dt = float(dt)
+        if self._a_planes is None and self._m_planes is None:
+            from .planes import make_planes
+
+            n_v = self.model.num_vertices
+            if self.analytic:
+                self._a_planes = make_planes(n_v * len(self.analytic), self.device)
+            if self.meshes:
+                self._m_planes = make_planes(n_v * len(self.meshes), self.device)
         self._poses(self.clock if time is None else time, dt, 0)
-        self._far(x, x_start, 0, self.iteration_margin)
+        th, ccd, nt = self.thickness, int(self.ccd), self._near_threads
+        if self._analytic_data is not None:
+            from .analytic import analytic_planes_kernel
+
+            wp.launch(analytic_planes_kernel, nt,
+                      [self._analytic_data, self._analytic_reach, self.poses, x, x_start, th, ccd,
+                       self._ai_count, self._ai_list, nt, self._a_planes], device=self.device)
+        if self._mesh_data is not None:
+            from .mesh_contact import mesh_planes_kernel
+
+            wp.launch(mesh_planes_kernel, nt,
+                      [self._mesh_data, self._mesh_ids, self.poses, len(self.analytic), x,
+                       x_start, th, self.slack, ccd, self._cache, self._m_count, self._m_list,
+                       self._m_mask, nt, self._m_planes], device=self.device)
         self._lists = (x.ptr, x_start.ptr, dt)
 
     def project_positions(self, x, x_start, dt: float, time=None) -> None:
         """Positions only: continuous test and projection (for position-based iterations).
         ``time``: the device time array of the step's start (default: the contact's clock).
-        After `begin_iterations` for the same arrays and ``dt``, only its listed vertices."""
+
+        After `begin_iterations` for the same arrays and ``dt`` (until the next `apply`): only
+        the listed vertices, against the contact planes made there (`warp_cloth.collision.
+        planes`). Otherwise the exact test of every vertex."""
         dt = float(dt)
-        if self._lists != (x.ptr, x_start.ptr, dt):
-            self._poses(self.clock if time is None else time, dt, 0)
-            self._far(x, x_start, 0, 0.0)
+        if self._lists == (x.ptr, x_start.ptr, dt):
+            from .planes import project_planes_kernel
+
+            nt = self._near_threads
+            if self._analytic_data is not None:
+                wp.launch(project_planes_kernel, nt,
+                          [x, self._a_planes, len(self.analytic), self._ai_count, self._ai_list,
+                           nt], device=self.device)
+            if self._mesh_data is not None:
+                wp.launch(project_planes_kernel, nt,
+                          [x, self._m_planes, len(self.meshes), self._m_count, self._m_list, nt],
+                          device=self.device)
+            return
+        self._poses(self.clock if time is None else time, dt, 0)
+        self._far(x, x_start, 0, 0.0)
         self._near(x, x_start, x, dt, 0)
 
     def _poses(self, time, dt, respond):
@@ -298,14 +343,16 @@ class ObstacleContact:
             from .analytic import analytic_far_kernel
 
             self._a_count.zero_()
+            if margin > 0.0:
+                self._ai_count.zero_()
             wp.launch(analytic_far_kernel, m.num_vertices,
-                      [self._analytic_reach, x, x_start, m.inv_mass, th, sl, ccd, margin,
-                       self._a_count, self._a_list], device=self.device)
+                      [self._analytic_reach, x, x_start, m.inv_mass, th, sl, ccd, self._a_count,
+                       self._a_list, margin, self._ai_count, self._ai_list], device=self.device)
         if self._mesh_data is not None:
             from .mesh_contact import mesh_far_kernel
 
-            # no margin for meshes: a listed vertex that does not touch pays a BVH query in
-            # every iteration (measured: PBD +320 % with the margin against +120 % without)
+            # no margin for meshes (the iterations reuse this list): a listed vertex that does
+            # not touch would pay a BVH query for its plane (measured: PBD +320 % with one)
             self._m_count.zero_()
             wp.launch(mesh_far_kernel, m.num_vertices,
                       [self._mesh_reach, x, x_start, m.inv_mass, th, sl, respond, ccd, 0.0,

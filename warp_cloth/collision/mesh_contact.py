@@ -57,6 +57,7 @@ import numpy as np
 import warp as wp
 
 from .motion import ObstacleData, ObstacleReach
+from .planes import ContactPlanes
 from .response import contact_outcome
 
 
@@ -462,6 +463,86 @@ def mesh_near_kernel(
         mesh_vertex_near(obstacles, mesh_ids, poses, pose_offset, near_mask[e], i, x_start[i],
                          x[i], x, v, dt, thickness, slack, respond_velocity, ccd,
                          respond_velocity != 0, cache)
+
+
+@wp.kernel
+def mesh_planes_kernel(
+    obstacles: wp.array(dtype=ObstacleData),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    poses: wp.array(dtype=wp.transform),
+    pose_offset: int,
+    x: wp.array(dtype=wp.vec3),
+    x_start: wp.array(dtype=wp.vec3),
+    thickness: float,
+    slack: float,
+    ccd: int,
+    cache: MeshCache,
+    near_count: wp.array(dtype=int),
+    near_list: wp.array(dtype=int),
+    near_mask: wp.array(dtype=int),
+    num_threads: int,
+    planes: ContactPlanes,
+):
+    """The contact plane of each listed vertex and mesh in its mask (`warp_cloth.collision.
+    planes`): closest point (candidate cache or BVH query), the ray test for a path that may
+    cross the surface, and the point at the thickness above the closest point, in the world
+    frame at ``t1``. No plane (zero normal) when no surface is within reach of the path."""
+    t = wp.tid()
+    n_list = near_count[0]
+    num = obstacles.shape[0]
+    reach = thickness + slack
+    for e in range(t, n_list, num_threads):
+        i = near_list[e]
+        mask = near_mask[e]
+        x0 = x_start[i]
+        x1 = x[i]
+        for k in range(num):
+            c_e = e * num + k
+            planes.normal[c_e] = wp.vec3(0.0)
+            if k < 31 and ((mask >> k) & 1) == 0:
+                continue
+            ob = obstacles[k]
+            mid = mesh_ids[k]
+            j = 5 * (pose_offset + k)
+            p0 = wp.transform_point(poses[j + 2], x0)
+            p1 = wp.transform_point(poses[j + 3], x1)
+            d = p1 - p0
+            ci = i * num + k
+            cached = False
+            if cache.cand_count[ci] > 0:
+                q = cache.cand_q[ci]
+                r2 = cache.radius * cache.radius
+                cached = wp.length_sq(p1 - q) <= r2 and wp.length_sq(p0 - q) <= r2
+            c = p1
+            phi = float(0.0)
+            n = wp.vec3(0.0, 1.0, 0.0)
+            if cached:
+                c, phi, n = cached_closest(mid, cache, ci, p1)
+            else:
+                len_d = float(0.0)
+                if ccd != 0:
+                    len_d = wp.length(d)
+                found = bool(False)
+                found, c, phi, n = closest(mid, ob.closed, p1, p0, ob.center, ob.size,
+                                           reach + len_d)
+                if not found:
+                    continue
+                if ccd != 0 and (phi < 0.0 or phi < len_d):
+                    ray = wp.mesh_query_ray(mid, p0, d, 1.0)
+                    if ray.result:
+                        dn = wp.dot(d, ray.normal)
+                        if ob.closed == 0 or dn < 0.0:
+                            ns = ray.normal  # the side the vertex came from
+                            if dn > 0.0:
+                                ns = -ray.normal
+                            h = p0 + ray.t * d
+                            c = h
+                            n = ns
+            T1 = poses[j + 1]
+            planes.point[c_e] = wp.transform_point(T1, c + thickness * n)
+            planes.normal[c_e] = wp.transform_vector(T1, n)
+            planes.ref[c_e] = wp.transform_point(T1, p0)
+            planes.friction[c_e] = ob.friction
 
 
 @wp.kernel
