@@ -32,37 +32,44 @@ vertex into each other (the last one wins).
 - explicit (symplectic Euler), implicit (Newton) and projective dynamics: `apply(state, x_start,
   dt)` runs after the solve: it projects positions and applies the impulse to the velocities, so
   the state leaves the step consistent (``v . N >= 0`` relative to the obstacle).
-- position-based: the solver calls `project_positions(x, x_start, dt)` inside each of its
-  constraint iterations: non-penetration as a constraint among the others (with the continuous
-  test against ``x_start``) plus position-level Coulomb friction (the tangential displacement
-  relative to the obstacle is removed up to ``mu_T`` times the normal correction: static and
-  sliding, the same threshold ``tan(angle) = mu_T`` on an incline). `apply` after its velocity
-  update then adds restitution to vertices still approaching (and their friction impulse).
-  Pass ``time=state.time`` to `project_positions` when possible; without it the contact uses its
-  own clock, which `apply` advances (correct for steps run back to back from time 0).
+- position-based: before its iterations the solver calls `begin_iterations`, which gives each
+  vertex the last `apply` found near an obstacle a contact plane per obstacle (exact geometry and
+  continuous test at the predicted position; `warp_cloth.collision.planes`, as in Müller et al.
+  2007, section 3.5), and `project_positions(x, x_start, dt)` inside each iteration projects
+  onto those planes: non-penetration as a constraint among the others, plus position-level
+  Coulomb friction (the tangential displacement relative to the obstacle is removed up to
+  ``mu_T`` times the normal correction: static and sliding, the same threshold
+  ``tan(angle) = mu_T`` on an incline). `apply` after its velocity update then tests the exact
+  geometry of every vertex and adds restitution to vertices still approaching (and their
+  friction impulse). Without `begin_iterations`, `project_positions` runs the exact test on
+  every vertex. Pass ``time=state.time`` when possible; without it the contact uses its own
+  clock, which `apply` advances (correct for steps run back to back from time 0).
 
-No host decisions: ``capturable = True``; `apply` makes one launch for all analytic obstacles, one
-for all mesh obstacles, and, when any obstacle moves, one (a thread per obstacle) that evaluates
-the obstacles' poses at the start and end of the step from ``state.time`` and a far-test record
-per obstacle (`motion.ObstacleReach`: world origin / plane normal at ``t1``, bounding radius, and
-how far the step's translation and rotation can move a vertex's local position). It allocates
-nothing.
+No host decisions: ``capturable = True``. `apply` runs, per obstacle family (analytic, mesh), a
+far pass over every vertex (cheap world-frame bounds per obstacle, `motion.ObstacleReach`, and for
+meshes a per-vertex distance cache) that appends the vertices within reach to a list, and a near
+pass over the list (`NEAR_BATCH` list entries per thread); when any obstacle moves, one launch
+(a thread per obstacle) first evaluates the poses at the start and end of the step from
+``state.time``. Static spheres and planes are handled in the world frame; a mesh vertex in
+contact keeps its few nearby faces (`mesh_contact`, candidate cache). Nothing is allocated per
+step.
 
-**Cost** (``warp-cloth bench contact``, explicit drape, 185 substeps per frame, CPU, graph replay;
-medians, ratios from one run; absolute numbers vary with load). Where the time goes, measured per
-kernel in isolation: a launch inside a captured graph costs about 0.2 us, so the launch count is
-not the issue here; the per-vertex work is. Reading ``x`` and ``x_start`` and testing one sphere
-costs about 2-4 us for 1,089 vertices (the floor of any per-vertex pass); the generic kernel's far
-path (obstacle loop, record load) about 8 us; each vertex in contact 100-150 ns (transforms,
-continuous test, projection, impulse; about 85 of 1,089 on the draped sphere: 9-12 us); a mesh
-vertex that must query the BVH about 0.6 us (on the draped mesh sphere 250 vertices lie within
-1 cm of the surface and about 90 touch it every step). Against a 37 us step (three launches for
-1,089 vertices) that puts the floor of analytic contact at about 35-50 % and of mesh contact at
-about 200 %: the issue's targets (20 % / 50 %) are not met at 32x32. The ratio falls with the
-cloth's resolution only as far as the share of vertices in contact falls (it does not: draped
-cloth touches in proportion), so 64x64 measures about the same ratios (see the benchmark).
-Tried and not kept: batching several vertices per thread (no gain: the cost is per vertex, not per
-thread), a higher C++ optimisation level (no change).
+**Cost** (``warp-cloth bench contact``: the 32x32 drape, each solver timed with and without the
+contact from the same draped state; CPU, graph replay, medians; ratios from one run). Implicit
+Euler and projective dynamics: +0-2 % (analytic), +6-9 % (960-triangle mesh): their steps cost
+milliseconds. Position-based dynamics: +17-24 % (analytic), +25 % (mesh). Explicit Euler is the
+hard case: its substep is ~37 us for 1,089 vertices (~34 ns a vertex, all forces included), so any
+per-vertex pass shows: sphere +44 %, sphere and plane +60 %, spinning sphere +61 %, mesh +109 %.
+The benchmark's floor row, a kernel written for that one static sphere and nothing else (far
+test, continuous test, projection, impulse), costs +25 %: the issue's 20 % target for analytic
+obstacles is below what a per-vertex contact pass costs on this CPU for explicit Euler's step.
+What Warp's CPU backend charges, measured: ~1.7 us per pass over 1,089 vertices (thread
+set-up), every variable of a kernel initialised for every thread (hence the separate far and
+near passes: one kernel holding both cost every far vertex the near path's set-up too), and
+~60-160 ns per vertex in contact (dependent chains of square roots and divisions).
+Tried and not kept: the contact fused into the explicit integrator's kernel (slower than a
+separate pass, even for the hand-written kernel), out-of-line or forced-inline near functions,
+batching vertices per thread in the far pass, a higher C++ optimisation level.
 """
 
 from __future__ import annotations
@@ -76,7 +83,7 @@ from .motion import KIND_MESH, quat_rotate
 from .obstacles import Obstacle
 
 __all__ = ["ObstacleContact", "PENETRATION_TOLERANCE", "DEFAULT_THICKNESS", "DEFAULT_FRICTION",
-           "DEFAULT_RESTITUTION"]
+           "DEFAULT_RESTITUTION", "NEAR_BATCH"]
 
 #: m; contact thickness: vertices rest this far from a surface
 DEFAULT_THICKNESS = 0.005

@@ -7,6 +7,7 @@ One step (the notes' PBD simulator, L1321-1348):
 
     v  <- (v + dt (f_ext / m + g)) exp(-damping dt)      external forces except the springs
     x* <- x + dt v                                        prediction
+    [each contact correction's begin_iterations(x*, x_start, dt), if any: contact planes]
     repeat `iterations` times: project every constraint   (Jacobi or coloured Gauss-Seidel)
         [then each contact correction's project_positions(x, x_start, dt), if any]
     v  <- v + (x - x*) / dt                               (L1344; = (x - x_old)/dt)
@@ -54,9 +55,11 @@ at their targets by the base class before the step and keep the velocity it give
 
 **Contact inside the iterations.** A correction in ``corrections`` that has a method
 ``project_positions(x, x_start, dt)`` is called inside every iteration, after the constraint
-projection (positions only), so constraints and contact are satisfied together. The base class
-still calls every correction's ``apply(state, x_start, dt)`` after the step (velocity impulse,
-friction, limits).
+projection (positions only), so constraints and contact are satisfied together; one that also
+has ``begin_iterations`` is given the predicted positions first, once per step
+(`ObstacleContact` makes its contact planes there, so the iterations only project onto planes).
+The base class still calls every correction's ``apply(state, x_start, dt)`` after the step
+(exact contact of every vertex, velocity impulse, friction, limits).
 
 Stability and limitations (honest): unconditionally stable in the sense that positions stay
 bounded, but not physically accurate: without compliance the stiffness depends on the iteration
