@@ -544,6 +544,7 @@ def test_iteration_planes_project_with_coulomb_friction(mu, back):
     normal correction (static: all of it; sliding: mu * 1 cm)."""
     model, st = particles(np.array([[0.0, 0.004, 0.0]]))
     contact = ObstacleContact(model, [Plane()], friction=mu)
+    contact.begin_iterations(st.x, wp.clone(st.x), 1e-3)  # from now on apply lists for them
     contact.apply(st, wp.clone(st.x), 1e-3)  # projects it to the thickness and lists it
     start = st.positions()
     assert start[0, 1] == pytest.approx(contact.thickness, abs=1e-6)

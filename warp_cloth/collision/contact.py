@@ -267,7 +267,9 @@ class ObstacleContact:
         self._lists = None  # lists made for iterations are stale after the step
         dt = float(dt)
         self._poses(state.time, dt, 1)
-        self._far(state.x, x_start, 1, self.iteration_margin)
+        # the list for the next step's iterations only once a solver has asked for iterations
+        self._far(state.x, x_start, 1, self.iteration_margin if self._a_planes is not None
+                  else 0.0)
         self._near(state.x, x_start, state.v, dt, 1)
 
     def begin_iterations(self, x, x_start, dt: float, time=None) -> None:
@@ -277,10 +279,10 @@ class ObstacleContact:
         meshes: within the reach), from its path ``x_start -> x``; the `project_positions`
         calls that follow (until the next `apply`) project only those, onto their planes.
 
-        The list comes from the last step's `apply`, which passes over every vertex anyway, so
-        the iterations add no pass of their own; it is a heuristic (a vertex that moves farther
-        than the margin in one step is missed by the iterations of that step, as are all in the
-        first step), not a guarantee: the `apply` that ends every step tests the exact geometry
+        The list comes from the last step's `apply`, which passes over every vertex anyway (it
+        makes it once `begin_iterations` has been called), so the iterations add no pass of
+        their own; it is a heuristic (a vertex that moves farther than the margin in one step is
+        missed by the iterations of that step, as are all in the first step), not a guarantee: the `apply` that ends every step tests the exact geometry
         of every vertex. Allocates the planes on its first call."""
         dt = float(dt)
         if self._a_planes is None and self._m_planes is None:
