@@ -274,44 +274,61 @@ def analytic_vertex_near(
     return x1, vi, touched
 
 
-@wp.kernel
-def analytic_far_kernel(
-    reaches: wp.array(dtype=ObstacleReach),
-    x: wp.array(dtype=wp.vec3),
-    x_start: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
-    thickness: float,
-    slack: float,
-    ccd: int,
-    near_count: wp.array(dtype=int),
-    near_list: wp.array(dtype=int),
-    margin: float,
-    iter_count: wp.array(dtype=int),
-    iter_list: wp.array(dtype=int),
-):
-    """Pass 1, every vertex: the far tests; a vertex that passes none is appended to
-    ``near_list`` (two passes: see `warp_cloth.collision.mesh_contact`). With ``margin > 0`` a
-    vertex within the reach plus ``margin`` is also appended to ``iter_list``: the vertices the
-    next step's position-based iterations will test (`ObstacleContact.begin_iterations`)."""
-    i = wp.tid()
-    if inv_mass[i] == 0.0:
-        return  # pinned vertices are never moved by contact
-    x0 = x_start[i]
-    x1 = x[i]
-    reach = thickness + slack
-    for k in range(reaches.shape[0]):
-        if margin > 0.0:
-            if far_from(reaches[k], x0, x1, reach + margin, thickness + margin, ccd):
-                continue
-            iter_list[wp.atomic_add(iter_count, 0, 1)] = i
-            for kk in range(k, reaches.shape[0]):
-                if not far_from(reaches[kk], x0, x1, reach, thickness, ccd):
-                    near_list[wp.atomic_add(near_count, 0, 1)] = i
-                    return
-            return
-        if not far_from(reaches[k], x0, x1, reach, thickness, ccd):
-            near_list[wp.atomic_add(near_count, 0, 1)] = i
-            return
+_FAR_KERNELS = {}
+
+
+def analytic_far_kernel(num: int):
+    """The far pass for ``num`` analytic obstacles (a kernel per count, made on first use: a
+    loop of known length is unrolled, which measured 30 % cheaper than a loop over
+    ``reaches.shape[0]`` on the CPU)."""
+    kernel = _FAR_KERNELS.get(num)
+    if kernel is None:
+        kernel = _FAR_KERNELS[num] = _make_far_kernel(num)
+    return kernel
+
+
+def _make_far_kernel(num: int):
+    @wp.kernel(module="unique")
+    def far_kernel(
+        reaches: wp.array(dtype=ObstacleReach),
+        x: wp.array(dtype=wp.vec3),
+        x_start: wp.array(dtype=wp.vec3),
+        inv_mass: wp.array(dtype=float),
+        thickness: float,
+        slack: float,
+        ccd: int,
+        near_count: wp.array(dtype=int),
+        near_list: wp.array(dtype=int),
+        margin: float,
+        iter_count: wp.array(dtype=int),
+        iter_list: wp.array(dtype=int),
+    ):
+        """Pass 1, every vertex: the far tests; a vertex that passes none is appended to
+        ``near_list`` (two passes: see `warp_cloth.collision.mesh_contact`). With
+        ``margin > 0`` a vertex within the reach plus ``margin`` is also appended to
+        ``iter_list``: the vertices the next step's position-based iterations will test
+        (`ObstacleContact.begin_iterations`)."""
+        i = wp.tid()
+        if inv_mass[i] == 0.0:
+            return  # pinned vertices are never moved by contact
+        x0 = x_start[i]
+        x1 = x[i]
+        reach = thickness + slack
+        for k in range(num):
+            if margin > 0.0:
+                if far_from(reaches[k], x0, x1, reach + margin, thickness + margin, ccd):
+                    continue
+                iter_list[wp.atomic_add(iter_count, 0, 1)] = i
+                for kk in range(k, num):
+                    if not far_from(reaches[kk], x0, x1, reach, thickness, ccd):
+                        near_list[wp.atomic_add(near_count, 0, 1)] = i
+                        return
+                return
+            if not far_from(reaches[k], x0, x1, reach, thickness, ccd):
+                near_list[wp.atomic_add(near_count, 0, 1)] = i
+                return
+
+    return far_kernel
 
 
 @wp.kernel

@@ -354,7 +354,7 @@ class ObstacleContact:
             self._a_count.zero_()
             if margin > 0.0:
                 self._ai_count.zero_()
-            wp.launch(analytic_far_kernel, m.num_vertices,
+            wp.launch(analytic_far_kernel(len(self.analytic)), m.num_vertices,
                       [self._analytic_reach, x, x_start, m.inv_mass, th, sl, ccd, self._a_count,
                        self._a_list, margin, self._ai_count, self._ai_list], device=self.device)
         if self._mesh_data is not None:
