@@ -363,7 +363,7 @@ class ObstacleContact:
             # no margin for meshes (the iterations reuse this list): a listed vertex that does
             # not touch would pay a BVH query for its plane (measured: PBD +320 % with one)
             self._m_count.zero_()
-            wp.launch(mesh_far_kernel, m.num_vertices,
+            wp.launch(mesh_far_kernel(len(self.meshes)), m.num_vertices,
                       [self._mesh_reach, x, x_start, m.inv_mass, th, sl, respond, ccd, 0.0,
                        self._cache, self._m_count, self._m_list, self._m_mask],
                       device=self.device)

@@ -366,71 +366,85 @@ def mesh_vertex_near(
             cache.last[i] = wp.vec3(wp.nan)
 
 
-@wp.kernel
-def mesh_far_kernel(
-    reaches: wp.array(dtype=ObstacleReach),
-    x: wp.array(dtype=wp.vec3),
-    x_start: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
-    thickness: float,
-    slack: float,
-    respond_velocity: int,
-    ccd: int,
-    margin: float,
-    cache: MeshCache,
-    near_count: wp.array(dtype=int),
-    near_list: wp.array(dtype=int),
-    near_mask: wp.array(dtype=int),
-):
-    """Pass 1, every vertex: the far tests (distance cache, then bounding ball); a vertex that
-    passes none is appended to ``near_list`` with the meshes it needs in ``near_mask`` (bit k:
-    mesh k; meshes from the 31st on always). ``margin``: extra reach, for a list that
-    several position-based iterations reuse (the distance cache is used and kept only by
-    ``apply``, whose margin is 0). Kept apart from the near work: Warp initialises a
-    function's variables on entry and copies what a call takes by value, so a kernel that
-    also holds the near path pays for it on every vertex (measured: twice this pass)."""
-    i = wp.tid()
-    if inv_mass[i] == 0.0:
-        return
-    x0 = x_start[i]
-    x1 = x[i]
-    reach = thickness + slack + margin  # margin: lists reused by position-based iterations
-    num = reaches.shape[0]
-    # distance cache (apply only): valid when this step starts where the last one ended
-    caching = respond_velocity != 0
-    valid = caching and cache.last[i] == x0
-    s = wp.length(x1 - x0)
-    mask = int(0)
-    for k in range(num):
-        ci = i * num + k
-        # the length of the vertex's path in the mesh's frame is at most `path`
-        # (ObstacleReach; just |x1 - x0| for a static mesh, no distance to the origin needed)
-        path = s
-        rb = reaches[k]
-        sweep = rb.sweep
-        turn = rb.turn
-        origin = rb.origin
-        if sweep != 0.0 or turn != 0.0:
-            path = s + sweep + turn * (wp.length(x1 - origin) + s + sweep)
-        if valid and rb.fresh != 0:
-            g = cache.gap[ci] - path  # a lower bound of the distance along the path
-            if g > reach:
-                cache.gap[ci] = g
+_FAR_KERNELS = {}
+
+
+def mesh_far_kernel(num: int):
+    """The far pass for ``num`` meshes (a kernel per count, made on first use, so that the loop
+    over the meshes is unrolled; see `warp_cloth.collision.analytic.analytic_far_kernel`)."""
+    kernel = _FAR_KERNELS.get(num)
+    if kernel is None:
+        kernel = _FAR_KERNELS[num] = _make_far_kernel(num)
+    return kernel
+
+
+def _make_far_kernel(num: int):
+    @wp.kernel(module="unique")
+    def far_kernel(
+        reaches: wp.array(dtype=ObstacleReach),
+        x: wp.array(dtype=wp.vec3),
+        x_start: wp.array(dtype=wp.vec3),
+        inv_mass: wp.array(dtype=float),
+        thickness: float,
+        slack: float,
+        respond_velocity: int,
+        ccd: int,
+        margin: float,
+        cache: MeshCache,
+        near_count: wp.array(dtype=int),
+        near_list: wp.array(dtype=int),
+        near_mask: wp.array(dtype=int),
+    ):
+        """Pass 1, every vertex: the far tests (distance cache, then bounding ball); a vertex that
+        passes none is appended to ``near_list`` with the meshes it needs in ``near_mask`` (bit k:
+        mesh k; meshes from the 31st on always). ``margin``: extra reach, for a list that
+        several position-based iterations reuse (the distance cache is used and kept only by
+        ``apply``, whose margin is 0). Kept apart from the near work: Warp initialises a
+        function's variables on entry and copies what a call takes by value, so a kernel that
+        also holds the near path pays for it on every vertex (measured: twice this pass)."""
+        i = wp.tid()
+        if inv_mass[i] == 0.0:
+            return
+        x0 = x_start[i]
+        x1 = x[i]
+        reach = thickness + slack + margin  # margin: lists reused by position-based iterations
+        # distance cache (apply only): valid when this step starts where the last one ended
+        caching = respond_velocity != 0
+        valid = caching and cache.last[i] == x0
+        s = wp.length(x1 - x0)
+        mask = int(0)
+        for k in range(num):
+            ci = i * num + k
+            # the length of the vertex's path in the mesh's frame is at most `path`
+            # (ObstacleReach; just |x1 - x0| for a static mesh, no distance to the origin needed)
+            path = s
+            rb = reaches[k]
+            sweep = rb.sweep
+            turn = rb.turn
+            origin = rb.origin
+            if sweep != 0.0 or turn != 0.0:
+                path = s + sweep + turn * (wp.length(x1 - origin) + s + sweep)
+            if valid and rb.fresh != 0:
+                g = cache.gap[ci] - path  # a lower bound of the distance along the path
+                if g > reach:
+                    cache.gap[ci] = g
+                    continue
+            # far test in the world frame (no transform): outside the bounding ball by more than
+            # the reach and than the path length
+            lb = wp.length(x1 - origin) - rb.bound - reach
+            if lb > 0.0 and (ccd == 0 or lb >= path):
+                if caching:
+                    cache.gap[ci] = lb + reach
                 continue
-        # far test in the world frame (no transform): outside the bounding ball by more than
-        # the reach and than the path length
-        lb = wp.length(x1 - origin) - rb.bound - reach
-        if lb > 0.0 and (ccd == 0 or lb >= path):
-            if caching:
-                cache.gap[ci] = lb + reach
-            continue
-        mask = mask | (1 << wp.min(k, 31))
-    if mask != 0:
-        slot = wp.atomic_add(near_count, 0, 1)
-        near_list[slot] = i
-        near_mask[slot] = mask
-    elif caching:
-        cache.last[i] = x1
+            mask = mask | (1 << wp.min(k, 31))
+        if mask != 0:
+            slot = wp.atomic_add(near_count, 0, 1)
+            near_list[slot] = i
+            near_mask[slot] = mask
+        elif caching:
+            cache.last[i] = x1
+
+    return far_kernel
 
 
 @wp.kernel
