@@ -22,6 +22,7 @@ import warp as wp
 
 from .motion import (FAST_NONE, FAST_SPHERE, KIND_BOX, KIND_PLANE, KIND_SPHERE, ObstacleData,
                      ObstacleReach)
+from ..solvers.explicit import symplectic_velocity
 from .planes import ContactPlanes
 from .response import contact_outcome, outcome_in_frame
 
@@ -329,6 +330,60 @@ def _make_far_kernel(num: int):
                 return
 
     return far_kernel
+
+
+_INTEGRATE_KERNELS = {}
+
+
+def integrate_far_kernel(num: int):
+    """Symplectic Euler's vertex update with the far pass for ``num`` analytic obstacles in the
+    same thread (`ObstacleContact.integrate_and_apply`; a kernel per count, made on first use)."""
+    kernel = _INTEGRATE_KERNELS.get(num)
+    if kernel is None:
+        kernel = _INTEGRATE_KERNELS[num] = _make_integrate_far_kernel(num)
+    return kernel
+
+
+def _make_integrate_far_kernel(num: int):
+    @wp.kernel(module="unique")
+    def integrate_far(
+        x: wp.array(dtype=wp.vec3),
+        v: wp.array(dtype=wp.vec3),
+        f: wp.array(dtype=wp.vec3),
+        inv_mass: wp.array(dtype=float),
+        gravity: wp.vec3,
+        decay: float,
+        dt: float,
+        x_start: wp.array(dtype=wp.vec3),
+        reaches: wp.array(dtype=ObstacleReach),
+        thickness: float,
+        slack: float,
+        ccd: int,
+        near_count: wp.array(dtype=int),
+        near_list: wp.array(dtype=int),
+    ):
+        """`integrate_symplectic_kernel`, then the far tests of the new path; a vertex that
+        passes none is listed for the near pass, and only its start position is written to
+        ``x_start`` (the near pass reads no other)."""
+        i = wp.tid()
+        w = inv_mass[i]
+        fi = f[i]
+        f[i] = wp.vec3(0.0)  # cleared for the next step's forces
+        if w == 0.0:
+            return
+        x0 = x[i]
+        vi = symplectic_velocity(v[i], fi, w, gravity, decay, dt)
+        x1 = x0 + dt * vi
+        v[i] = vi
+        x[i] = x1
+        reach = thickness + slack
+        for k in range(num):
+            if not far_from(reaches[k], x0, x1, reach, thickness, ccd):
+                x_start[i] = x0
+                near_list[wp.atomic_add(near_count, 0, 1)] = i
+                return
+
+    return integrate_far
 
 
 @wp.kernel

@@ -132,6 +132,9 @@ class ObstacleContact:
             near it and, while its path stays within this distance of where they were
             gathered, finds its closest point among them instead of querying the BVH (default
             ``0.5 * thickness``; 0 turns this cache off). Exact: see `mesh_contact`.
+        fuse: let a solver that can (the explicit one) run the far tests inside its own vertex
+            update (`integrate_and_apply`; analytic obstacles only). Default True; the result
+            is the same, False keeps contact a separate correction (for comparison).
     """
 
     capturable = True
@@ -139,7 +142,7 @@ class ObstacleContact:
     def __init__(self, model, obstacles, *, thickness: float = DEFAULT_THICKNESS,
                  restitution: float = DEFAULT_RESTITUTION, friction: float = DEFAULT_FRICTION,
                  ccd: bool = True, slack: float | None = None, cache_margin: float = 0.02,
-                 candidate_radius: float | None = None):
+                 candidate_radius: float | None = None, fuse: bool = True):
         if isinstance(obstacles, Obstacle):
             obstacles = [obstacles]
         obstacles = list(obstacles)
@@ -158,6 +161,7 @@ class ObstacleContact:
         self.slack = 0.1 * self.thickness if slack is None else _num("slack", slack, 0.0)
         self.ccd = bool(ccd)
         self.cache_margin = _num("cache_margin", cache_margin, 0.0)
+        self.fuse = bool(fuse)
         #: m; extra reach of the lists `begin_iterations` makes for position-based iterations
         self.iteration_margin = 0.5 * self.thickness
         self.candidate_radius = (0.5 * self.thickness if candidate_radius is None
@@ -270,6 +274,36 @@ class ObstacleContact:
         # the list for the next step's iterations only once a solver has asked for iterations
         self._far(state.x, x_start, 1, self.iteration_margin if self._a_planes is not None
                   else 0.0)
+        self._near(state.x, x_start, state.v, dt, 1)
+
+    @property
+    def fusable(self) -> bool:
+        """True when `integrate_and_apply` can run this contact: ``fuse`` and analytic obstacles
+        only (a solver that `fuses_contact` then calls it instead of `apply`)."""
+        return self.fuse and bool(self.analytic) and not self.meshes
+
+    def integrate_and_apply(self, state, x_start, f, gravity, decay: float, dt: float) -> None:
+        """Symplectic Euler's vertex update and `apply`, with the far tests in the same pass.
+
+        ``v <- (v + dt (f w + g)) decay; x <- x + dt v`` for every free vertex (``f`` is cleared
+        for the next step), then, in the same thread, the far tests of the path ``x -> x +
+        dt v``; the near pass follows for the listed vertices, whose start positions this
+        writes to ``x_start``. One pass over the vertices fewer, and no copy of the start
+        positions: the same result as the update followed by `apply` (tests/test_contact.py).
+        The explicit solver calls this when the contact is its first correction."""
+        if not self.fusable:
+            raise RuntimeError("integrate_and_apply needs fuse=True and analytic obstacles only")
+        from .analytic import integrate_far_kernel
+
+        m = self.model
+        dt = float(dt)
+        self._lists = None
+        self._poses(state.time, dt, 1)
+        self._a_count.zero_()
+        wp.launch(integrate_far_kernel(len(self.analytic)), m.num_vertices,
+                  [state.x, state.v, f, m.inv_mass, gravity, float(decay), dt, x_start,
+                   self._analytic_reach, self.thickness, self.slack, int(self.ccd),
+                   self._a_count, self._a_list], device=self.device)
         self._near(state.x, x_start, state.v, dt, 1)
 
     def begin_iterations(self, x, x_start, dt: float, time=None) -> None:

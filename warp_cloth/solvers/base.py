@@ -65,11 +65,26 @@ class Solver:
         if self._x_start is None:
             self._x_start = wp.zeros(self.model.num_vertices, dtype=wp.vec3, device=self.device)
 
+    #: True for a solver whose ``_advance`` can run a first correction that is ``fusable``
+    #: (obstacle contact) as part of its own vertex update (see `fused`)
+    fuses_contact = False
+
+    @property
+    def fused(self):
+        """The correction this step runs inside the method's vertex update, or None: the first
+        correction when the solver `fuses_contact` and the correction is ``fusable`` (it would
+        have run first anyway, so the order of corrections is kept)."""
+        if self.fuses_contact and self.corrections and getattr(self.corrections[0], "fusable",
+                                                                 False):
+            return self.corrections[0]
+        return None
+
     def step(self, state, dt: float):
         """Advance ``state`` in place by ``dt`` seconds and return it."""
         dt = check_dt(dt)
         m = self.model
-        if self._x_start is not None:
+        rest = self.corrections[1:] if self.fused is not None else self.corrections
+        if rest:  # a fused contact writes the start positions it needs itself
             wp.copy(self._x_start, state.x)
         if m.pin_path is not None and len(m.pins):
             wp.launch(
@@ -79,7 +94,7 @@ class Solver:
                 device=self.device,
             )
         self._advance(state, dt)
-        for c in self.corrections:
+        for c in rest:
             c.apply(state, self._x_start, dt)
         wp.launch(common.advance_time_kernel, 1, [state.time, dt], device=self.device)
         return state

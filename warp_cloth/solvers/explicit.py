@@ -23,6 +23,12 @@ import warp as wp
 from .base import Solver
 
 
+@wp.func
+def symplectic_velocity(v: wp.vec3, f: wp.vec3, w: float, gravity: wp.vec3, decay: float, dt: float):
+    """The new velocity of a free vertex (inverse mass ``w > 0``): ``(v + dt (f w + g)) decay``."""
+    return (v + dt * (f * w + gravity)) * decay
+
+
 @wp.kernel
 def integrate_symplectic_kernel(
     x: wp.array(dtype=wp.vec3),
@@ -36,7 +42,7 @@ def integrate_symplectic_kernel(
     i = wp.tid()
     w = inv_mass[i]
     if w > 0.0:
-        vi = (v[i] + dt * (f[i] * w + gravity)) * decay
+        vi = symplectic_velocity(v[i], f[i], w, gravity, decay, dt)
         v[i] = vi
         x[i] = x[i] + dt * vi
     f[i] = wp.vec3(0.0)
@@ -47,7 +53,8 @@ class SymplecticEuler(Solver):
 
     Args:
         model: the `ClothModel`.
-        corrections: limits / contact / self-collision passes run after each step.
+        corrections: limits / contact / self-collision passes run after each step. Obstacle
+            contact given first has its far tests run inside the vertex update (`Solver.fused`).
     """
 
     name = "explicit"
@@ -56,10 +63,17 @@ class SymplecticEuler(Solver):
         super().__init__(model, corrections=corrections)
         self.f = wp.zeros(model.num_vertices, dtype=wp.vec3, device=self.device)
 
+    fuses_contact = True
+
     def _advance(self, state, dt):
         m = self.model
         for term in m.force_terms:
             term.eval(state.x, state.v, self.f, state.time)
+        fused = self.fused
+        if fused is not None:  # obstacle contact's far tests inside the vertex update
+            fused.integrate_and_apply(state, self._x_start, self.f, wp.vec3(*m.gravity),
+                                      math.exp(-m.damping * dt), dt)
+            return
         wp.launch(
             integrate_symplectic_kernel,
             m.num_vertices,
