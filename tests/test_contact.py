@@ -513,11 +513,11 @@ def test_mesh_candidate_cache_matches_bvh_queries(motion):
         if k % 20 == 0 and k > 0:
             saved = [a.numpy().copy() for a in (st.x, st.v, st.time, cache.gap, cache.last,
                                                 cache.cand_q, cache.cand_phi, cache.cand_count,
-                                                cache.cand_faces)]
+                                                cache.cand_tris)]
             ends = []
             for clear in (True, False):  # with the candidates last: the run goes on with them
                 for a, val in zip((st.x, st.v, st.time, cache.gap, cache.last, cache.cand_q,
-                                   cache.cand_phi, cache.cand_count, cache.cand_faces), saved):
+                                   cache.cand_phi, cache.cand_count, cache.cand_tris), saved):
                     a.assign(val)
                 if clear:
                     cache.cand_count.zero_()

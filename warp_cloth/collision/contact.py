@@ -260,7 +260,7 @@ class ObstacleContact:
             c.cand_q = wp.zeros(n_e, dtype=wp.vec3, device=d)
             c.cand_phi = wp.zeros(n_e, dtype=float, device=d)
             c.cand_count = wp.zeros(n_e, dtype=int, device=d)
-            c.cand_faces = wp.zeros(n_e * MAX_CANDIDATES, dtype=int, device=d)
+            c.cand_tris = wp.zeros(3 * n_e * MAX_CANDIDATES, dtype=wp.vec3, device=d)
             c.radius = self.candidate_radius
             self._cache = c
 

@@ -121,7 +121,8 @@ class MeshCache:
     cand_q: wp.array(dtype=wp.vec3)  # local centre q of the candidate ball
     cand_phi: wp.array(dtype=float)  # signed distance of q (|phi_q| > radius)
     cand_count: wp.array(dtype=int)  # candidate faces (0: no cache)
-    cand_faces: wp.array(dtype=int)  # MAX_CANDIDATES per entry
+    cand_tris: wp.array(dtype=wp.vec3)  # 3 local corners of each candidate face, MAX_CANDIDATES
+    #                                     per entry (no index lookups when they are used)
     radius: float  # m: the ball radius (0: candidate cache off)
 
 
@@ -173,7 +174,9 @@ def cached_closest(mid: wp.uint64, cache: MeshCache, ci: int, p: wp.vec3):
     best = float(1.0e30)
     c = p
     for j in range(cnt):
-        cj = face_closest(mid, cache.cand_faces[ci * MAX_CANDIDATES + j], p)
+        b = 3 * (ci * MAX_CANDIDATES + j)
+        cj = closest_on_triangle(cache.cand_tris[b], cache.cand_tris[b + 1],
+                                 cache.cand_tris[b + 2], p)
         d2 = wp.length_sq(p - cj)
         if d2 < best:
             best = d2
@@ -189,7 +192,7 @@ def cached_closest(mid: wp.uint64, cache: MeshCache, ci: int, p: wp.vec3):
 def refresh_candidates(mid: wp.uint64, closed: int, r: float, ci: int, q: wp.vec3,
                        center: wp.vec3, half: wp.vec3, max_dist: float,
                        cand_q: wp.array(dtype=wp.vec3), cand_phi: wp.array(dtype=float),
-                       cand_count: wp.array(dtype=int), cand_faces: wp.array(dtype=int)):
+                       cand_count: wp.array(dtype=int), cand_tris: wp.array(dtype=wp.vec3)):
     """New candidate ball at ``q``: its exact signed distance by a BVH query, then every face
     within ``|phi_q| + 2 radius`` of ``q`` (an AABB query and exact triangle distances). No cache
     when ``|phi_q| <= radius`` (the ball would reach the surface) or when there are more than
@@ -207,7 +210,10 @@ def refresh_candidates(mid: wp.uint64, closed: int, r: float, ci: int, q: wp.vec
         if wp.length(q - face_closest(mid, f, q)) <= lim:
             if cnt == MAX_CANDIDATES:
                 return  # too many: no cache (count stays 0)
-            cand_faces[ci * MAX_CANDIDATES + cnt] = f
+            b = 3 * (ci * MAX_CANDIDATES + cnt)
+            cand_tris[b] = wp.mesh_get_point(mid, 3 * f)
+            cand_tris[b + 1] = wp.mesh_get_point(mid, 3 * f + 1)
+            cand_tris[b + 2] = wp.mesh_get_point(mid, 3 * f + 2)
             cnt += 1
     cand_q[ci] = q
     cand_phi[ci] = phi
@@ -314,7 +320,7 @@ def mesh_near(
         if not cached and cache.radius > 0.0 and phi < reach + cache.radius:
             refresh_candidates(mid, ob.closed, cache.radius, ci, p1, ob.center, ob.size,
                                reach + 3.0 * cache.radius, cache.cand_q, cache.cand_phi,
-                               cache.cand_count, cache.cand_faces)
+                               cache.cand_count, cache.cand_tris)
     if moved or (respond_velocity != 0 and phi < reach):
         if respond_velocity != 0 and not touched:
             vi = v[i]
