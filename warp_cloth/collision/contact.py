@@ -55,21 +55,24 @@ contact keeps its few nearby faces (`mesh_contact`, candidate cache). Nothing is
 step.
 
 **Cost** (``warp-cloth bench contact``: the 32x32 drape, each solver timed with and without the
-contact from the same draped state; CPU, graph replay, medians; ratios from one run). Implicit
-Euler and projective dynamics: +0-2 % (analytic), +6-9 % (960-triangle mesh): their steps cost
-milliseconds. Position-based dynamics: +17-24 % (analytic), +25 % (mesh). Explicit Euler is the
-hard case: its substep is ~37 us for 1,089 vertices (~34 ns a vertex, all forces included), so any
-per-vertex pass shows: sphere +44 %, sphere and plane +60 %, spinning sphere +61 %, mesh +109 %.
-The benchmark's floor row, a kernel written for that one static sphere and nothing else (far
-test, continuous test, projection, impulse), costs +25 %: the issue's 20 % target for analytic
-obstacles is below what a per-vertex contact pass costs on this CPU for explicit Euler's step.
+contact from the same draped state; CPU, graph replay, medians; ranges over repeated runs).
+Implicit Euler and projective dynamics: +0-4 % (analytic), +7-11 % (960-triangle mesh): their
+steps cost milliseconds. Position-based dynamics: +15-21 % (analytic), +18-22 % (mesh), with the
+contact planes. Explicit Euler is the hard case: its substep is ~37 us for 1,089 vertices
+(~34 ns a vertex, all forces included), so any per-vertex pass shows: sphere +32-35 %, sphere and
+plane +38-47 %, spinning sphere +46-47 %, mesh +88-98 %, with the far tests inside the
+integrator's kernel (`integrate_and_apply`). The benchmark's floor row, a kernel written for that
+one static sphere and nothing else (far test, continuous test, projection, impulse), costs
++23-25 %: a 20 % target for analytic obstacles is below what a per-vertex contact pass costs for
+explicit Euler's step on this CPU.
 What Warp's CPU backend charges, measured: ~1.7 us per pass over 1,089 vertices (thread
 set-up), every variable of a kernel initialised for every thread (hence the separate far and
 near passes: one kernel holding both cost every far vertex the near path's set-up too), and
 ~60-160 ns per vertex in contact (dependent chains of square roots and divisions).
-Tried and not kept: the contact fused into the explicit integrator's kernel (slower than a
-separate pass, even for the hand-written kernel), out-of-line or forced-inline near functions,
-batching vertices per thread in the far pass, a higher C++ optimisation level.
+Tried and not kept: the whole contact (near path included) fused into the explicit integrator's
+kernel (slower than a separate near pass, even for the hand-written kernel), out-of-line or
+forced-inline near functions, batching vertices per thread in the far pass, a higher C++
+optimisation level.
 """
 
 from __future__ import annotations
