@@ -58,7 +58,7 @@ import warp as wp
 
 from .motion import ObstacleData, ObstacleReach
 from .planes import ContactPlanes
-from .response import contact_outcome
+from .response import contact_outcome, outcome_in_frame
 
 
 @wp.func
@@ -190,13 +190,14 @@ def cached_closest(mid: wp.uint64, cache: MeshCache, ci: int, p: wp.vec3):
 
 @wp.func(inline=False)
 def refresh_candidates(mid: wp.uint64, closed: int, r: float, ci: int, q: wp.vec3,
-                       center: wp.vec3, half: wp.vec3, max_dist: float,
+                       center: wp.vec3, half: wp.vec3, max_dist: float, T: wp.transform,
                        cand_q: wp.array(dtype=wp.vec3), cand_phi: wp.array(dtype=float),
                        cand_count: wp.array(dtype=int), cand_tris: wp.array(dtype=wp.vec3)):
     """New candidate ball at ``q``: its exact signed distance by a BVH query, then every face
-    within ``|phi_q| + 2 radius`` of ``q`` (an AABB query and exact triangle distances). No cache
-    when ``|phi_q| <= radius`` (the ball would reach the surface) or when there are more than
-    `MAX_CANDIDATES` faces."""
+    within ``|phi_q| + 2 radius`` of ``q`` (an AABB query and exact triangle distances), stored
+    mapped by the rigid ``T`` (a static mesh's pose: its cache lives in the world frame; identity
+    for a moving mesh, whose cache stays in its own frame). No cache when ``|phi_q| <= radius``
+    (the ball would reach the surface) or when there are more than `MAX_CANDIDATES` faces."""
     cand_count[ci] = 0
     found, c, phi, n = closest(mid, closed, q, q, center, half, max_dist)
     if not found or wp.abs(phi) <= r:
@@ -211,11 +212,11 @@ def refresh_candidates(mid: wp.uint64, closed: int, r: float, ci: int, q: wp.vec
             if cnt == MAX_CANDIDATES:
                 return  # too many: no cache (count stays 0)
             b = 3 * (ci * MAX_CANDIDATES + cnt)
-            cand_tris[b] = wp.mesh_get_point(mid, 3 * f)
-            cand_tris[b + 1] = wp.mesh_get_point(mid, 3 * f + 1)
-            cand_tris[b + 2] = wp.mesh_get_point(mid, 3 * f + 2)
+            cand_tris[b] = wp.transform_point(T, wp.mesh_get_point(mid, 3 * f))
+            cand_tris[b + 1] = wp.transform_point(T, wp.mesh_get_point(mid, 3 * f + 1))
+            cand_tris[b + 2] = wp.transform_point(T, wp.mesh_get_point(mid, 3 * f + 2))
             cnt += 1
-    cand_q[ci] = q
+    cand_q[ci] = wp.transform_point(T, q)
     cand_phi[ci] = phi
     cand_count[ci] = cnt
 
@@ -252,15 +253,38 @@ def mesh_near(
     reach = thickness + slack
     ob = obstacles[k]
     mid = mesh_ids[k]
+    r2 = cache.radius * cache.radius
+    if ob.moving == 0 and cache.cand_count[ci] > 0:
+        # a static mesh's candidates are kept in the world frame: no transforms, and the
+        # surface does not move (the same steps as below otherwise)
+        q = cache.cand_q[ci]
+        if wp.length_sq(x1 - q) <= r2 and wp.length_sq(x0 - q) <= r2:
+            cw, phiw, nw = cached_closest(mid, cache, ci, x1)
+            movedw = False
+            pw = x1
+            if phiw < thickness:
+                pw = cw + thickness * nw
+                movedw = True
+            if caching:
+                cache.gap[ci] = phiw
+                if movedw:
+                    cache.gap[ci] = 0.0
+            if movedw or (respond_velocity != 0 and phiw < reach):
+                vr = vi
+                if respond_velocity != 0 and not touched:
+                    vr = v[i]
+                xo, vo = outcome_in_frame(x0, x1, pw, nw, vr, wp.vec3(0.0), nw, ob.restitution,
+                                          ob.friction, respond_velocity)
+                return xo, vo, True
+            return x1, vi, touched
     p0 = wp.transform_point(poses[j + 2], x0)
     p1 = wp.transform_point(poses[j + 3], x1)
     d = p1 - p0
     # candidate cache: the whole path inside the ball of the last refresh, so the closest
     # point is on one of its faces and no surface is crossed (no ray query)
     cached = False
-    if cache.cand_count[ci] > 0:
+    if ob.moving != 0 and cache.cand_count[ci] > 0:
         q = cache.cand_q[ci]
-        r2 = cache.radius * cache.radius
         cached = wp.length_sq(p1 - q) <= r2 and wp.length_sq(p0 - q) <= r2
     c = p1
     phi = float(0.0)
@@ -318,9 +342,12 @@ def mesh_near(
         if moved:
             cache.gap[ci] = 0.0
         if not cached and cache.radius > 0.0 and phi < reach + cache.radius:
+            frame = wp.transform_identity()
+            if ob.moving == 0:
+                frame = poses[j + 1]
             refresh_candidates(mid, ob.closed, cache.radius, ci, p1, ob.center, ob.size,
-                               reach + 3.0 * cache.radius, cache.cand_q, cache.cand_phi,
-                               cache.cand_count, cache.cand_tris)
+                               reach + 3.0 * cache.radius, frame, cache.cand_q,
+                               cache.cand_phi, cache.cand_count, cache.cand_tris)
     if moved or (respond_velocity != 0 and phi < reach):
         if respond_velocity != 0 and not touched:
             vi = v[i]
@@ -528,10 +555,19 @@ def mesh_planes_kernel(
             p1 = wp.transform_point(poses[j + 3], x1)
             d = p1 - p0
             ci = i * num + k
-            cached = False
-            if cache.cand_count[ci] > 0:
+            r2 = cache.radius * cache.radius
+            if ob.moving == 0 and cache.cand_count[ci] > 0:  # world-frame candidates
                 q = cache.cand_q[ci]
-                r2 = cache.radius * cache.radius
+                if wp.length_sq(x1 - q) <= r2 and wp.length_sq(x0 - q) <= r2:
+                    cw, phiw, nw = cached_closest(mid, cache, ci, x1)
+                    planes.point[c_e] = cw + thickness * nw
+                    planes.normal[c_e] = nw
+                    planes.ref[c_e] = x0
+                    planes.friction[c_e] = ob.friction
+                    continue
+            cached = False
+            if ob.moving != 0 and cache.cand_count[ci] > 0:
+                q = cache.cand_q[ci]
                 cached = wp.length_sq(p1 - q) <= r2 and wp.length_sq(p0 - q) <= r2
             c = p1
             phi = float(0.0)
