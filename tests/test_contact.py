@@ -560,15 +560,19 @@ def test_iteration_planes_project_with_coulomb_friction(mu, back):
     assert np.array_equal(out[1:], pred[1:])  # the far vertices were not listed
 
 
-@pytest.mark.parametrize("moving", [False, True])
-def test_explicit_fused_contact_matches_separate_pass(moving):
-    """The explicit solver runs analytic contact's far tests inside its vertex update
+@pytest.mark.parametrize("kind", ["static", "moving", "mesh", "moving mesh"])
+def test_explicit_fused_contact_matches_separate_pass(kind):
+    """The explicit solver runs contact's far tests inside its vertex update
     (`ObstacleContact.integrate_and_apply`); the run equals the one with contact as a separate
-    correction (fuse=False), on static and on moving obstacles."""
+    correction (fuse=False), for static and moving analytic obstacles and meshes."""
     def run(fuse):
         model = sheet_model(res=10, size=0.7, height=0.7)
-        motion = Motion(angular_velocity=(0.0, 3.0, 0.0)) if moving else Motion()
-        obs = [Sphere(0.2, (0.05, 0.4, 0.0), motion=motion), Plane((0.3, 1.0, 0.0), (0, 0.3, 0))]
+        motion = Motion(angular_velocity=(0.0, 3.0, 0.0)) if "moving" in kind else Motion()
+        if "mesh" in kind:
+            obs = [MeshObstacle(asset_path("torus.obj"), position=(0.0, 0.45, 0.0), motion=motion)]
+        else:
+            obs = [Sphere(0.2, (0.05, 0.4, 0.0), motion=motion),
+                   Plane((0.3, 1.0, 0.0), (0, 0.3, 0))]
         contact = ObstacleContact(model, obs, friction=0.3, fuse=fuse)
         solver = make_solver("explicit", model)
         solver.add_correction(contact)

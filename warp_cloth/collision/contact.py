@@ -136,7 +136,7 @@ class ObstacleContact:
             gathered, finds its closest point among them instead of querying the BVH (default
             ``0.5 * thickness``; 0 turns this cache off). Exact: see `mesh_contact`.
         fuse: let a solver that can (the explicit one) run the far tests inside its own vertex
-            update (`integrate_and_apply`; analytic obstacles only). Default True; the result
+            update (`integrate_and_apply`; obstacles of one family). Default True; the result
             is the same, False keeps contact a separate correction (for comparison).
     """
 
@@ -281,9 +281,10 @@ class ObstacleContact:
 
     @property
     def fusable(self) -> bool:
-        """True when `integrate_and_apply` can run this contact: ``fuse`` and analytic obstacles
-        only (a solver that `fuses_contact` then calls it instead of `apply`)."""
-        return self.fuse and bool(self.analytic) and not self.meshes
+        """True when `integrate_and_apply` can run this contact: ``fuse`` and obstacles of one
+        family, analytic or mesh (a solver that `fuses_contact` then calls it instead of
+        `apply`)."""
+        return self.fuse and not (self.analytic and self.meshes)
 
     def integrate_and_apply(self, state, x_start, f, gravity, decay: float, dt: float) -> None:
         """Symplectic Euler's vertex update and `apply`, with the far tests in the same pass.
@@ -295,18 +296,28 @@ class ObstacleContact:
         positions: the same result as the update followed by `apply` (tests/test_contact.py).
         The explicit solver calls this when the contact is its first correction."""
         if not self.fusable:
-            raise RuntimeError("integrate_and_apply needs fuse=True and analytic obstacles only")
-        from .analytic import integrate_far_kernel
-
+            raise RuntimeError("integrate_and_apply needs fuse=True and obstacles of one family "
+                               "(analytic or mesh)")
         m = self.model
         dt = float(dt)
         self._lists = None
         self._poses(state.time, dt, 1)
-        self._a_count.zero_()
-        wp.launch(integrate_far_kernel(len(self.analytic)), m.num_vertices,
-                  [state.x, state.v, f, m.inv_mass, gravity, float(decay), dt, x_start,
-                   self._analytic_reach, self.thickness, self.slack, int(self.ccd),
-                   self._a_count, self._a_list], device=self.device)
+        head = [state.x, state.v, f, m.inv_mass, gravity, float(decay), dt, x_start]
+        if self.analytic:
+            from .analytic import integrate_far_kernel
+
+            self._a_count.zero_()
+            wp.launch(integrate_far_kernel(len(self.analytic)), m.num_vertices,
+                      [*head, self._analytic_reach, self.thickness, self.slack, int(self.ccd),
+                       self._a_count, self._a_list], device=self.device)
+        else:
+            from .mesh_contact import integrate_mesh_far_kernel
+
+            self._m_count.zero_()
+            wp.launch(integrate_mesh_far_kernel(len(self.meshes)), m.num_vertices,
+                      [*head, self._mesh_reach, self.thickness, self.slack, int(self.ccd),
+                       self._cache, self._m_count, self._m_list, self._m_mask],
+                      device=self.device)
         self._near(state.x, x_start, state.v, dt, 1)
 
     def begin_iterations(self, x, x_start, dt: float, time=None) -> None:

@@ -57,6 +57,7 @@ import numpy as np
 import warp as wp
 
 from .motion import ObstacleData, ObstacleReach
+from ..solvers.explicit import symplectic_velocity
 from .planes import ContactPlanes
 from .response import contact_outcome, outcome_in_frame
 
@@ -400,6 +401,7 @@ def mesh_vertex_near(
 
 
 _FAR_KERNELS = {}
+_INTEGRATE_KERNELS = {}
 
 
 def mesh_far_kernel(num: int):
@@ -407,42 +409,26 @@ def mesh_far_kernel(num: int):
     over the meshes is unrolled; see `warp_cloth.collision.analytic.analytic_far_kernel`)."""
     kernel = _FAR_KERNELS.get(num)
     if kernel is None:
-        kernel = _FAR_KERNELS[num] = _make_far_kernel(num)
+        kernel = _FAR_KERNELS[num] = _make_far_kernels(num)[0]
     return kernel
 
 
-def _make_far_kernel(num: int):
-    @wp.kernel(module="unique")
-    def far_kernel(
-        reaches: wp.array(dtype=ObstacleReach),
-        x: wp.array(dtype=wp.vec3),
-        x_start: wp.array(dtype=wp.vec3),
-        inv_mass: wp.array(dtype=float),
-        thickness: float,
-        slack: float,
-        respond_velocity: int,
-        ccd: int,
-        margin: float,
-        cache: MeshCache,
-        near_count: wp.array(dtype=int),
-        near_list: wp.array(dtype=int),
-        near_mask: wp.array(dtype=int),
-    ):
-        """Pass 1, every vertex: the far tests (distance cache, then bounding ball); a vertex that
-        passes none is appended to ``near_list`` with the meshes it needs in ``near_mask`` (bit k:
-        mesh k; meshes from the 31st on always). ``margin``: extra reach, for a list that
-        several position-based iterations reuse (the distance cache is used and kept only by
-        ``apply``, whose margin is 0). Kept apart from the near work: Warp initialises a
-        function's variables on entry and copies what a call takes by value, so a kernel that
-        also holds the near path pays for it on every vertex (measured: twice this pass)."""
-        i = wp.tid()
-        if inv_mass[i] == 0.0:
-            return
-        x0 = x_start[i]
-        x1 = x[i]
-        reach = thickness + slack + margin  # margin: lists reused by position-based iterations
-        # distance cache (apply only): valid when this step starts where the last one ended
-        caching = respond_velocity != 0
+def integrate_mesh_far_kernel(num: int):
+    """Symplectic Euler's vertex update with the far pass for ``num`` meshes in the same thread
+    (`ObstacleContact.integrate_and_apply`)."""
+    kernel = _INTEGRATE_KERNELS.get(num)
+    if kernel is None:
+        kernel = _INTEGRATE_KERNELS[num] = _make_far_kernels(num)[1]
+    return kernel
+
+
+def _make_far_kernels(num: int):
+    @wp.func
+    def far_mask(reaches: wp.array(dtype=ObstacleReach), i: int, x0: wp.vec3, x1: wp.vec3,
+                 reach: float, ccd: int, caching: bool, cache: MeshCache):
+        """The far tests of vertex ``i`` against the ``num`` meshes (distance cache, then
+        bounding ball; the cache is read and kept with ``caching`` only). Returns the mask of
+        the meshes it passed none of (bit k: mesh k; meshes from the 31st on always)."""
         valid = caching and cache.last[i] == x0
         s = wp.length(x1 - x0)
         mask = int(0)
@@ -462,14 +448,46 @@ def _make_far_kernel(num: int):
                 if g > reach:
                     cache.gap[ci] = g
                     continue
-            # far test in the world frame (no transform): outside the bounding ball by more than
-            # the reach and than the path length
+            # far test in the world frame (no transform): outside the bounding ball by more
+            # than the reach and than the path length
             lb = wp.length(x1 - origin) - rb.bound - reach
             if lb > 0.0 and (ccd == 0 or lb >= path):
                 if caching:
                     cache.gap[ci] = lb + reach
                 continue
             mask = mask | (1 << wp.min(k, 31))
+        return mask
+
+    @wp.kernel(module="unique")
+    def far_kernel(
+        reaches: wp.array(dtype=ObstacleReach),
+        x: wp.array(dtype=wp.vec3),
+        x_start: wp.array(dtype=wp.vec3),
+        inv_mass: wp.array(dtype=float),
+        thickness: float,
+        slack: float,
+        respond_velocity: int,
+        ccd: int,
+        margin: float,
+        cache: MeshCache,
+        near_count: wp.array(dtype=int),
+        near_list: wp.array(dtype=int),
+        near_mask: wp.array(dtype=int),
+    ):
+        """Pass 1, every vertex: the far tests (`far_mask`); a vertex that passes none is
+        appended to ``near_list`` with the meshes it needs in ``near_mask``. ``margin``: extra
+        reach, for a list that several position-based iterations reuse (the distance cache is
+        used and kept only by ``apply``, whose margin is 0). Kept apart from the near work: Warp
+        initialises a function's variables on entry and copies what a call takes by value, so a
+        kernel that also holds the near path pays for it on every vertex (measured: twice this
+        pass)."""
+        i = wp.tid()
+        if inv_mass[i] == 0.0:
+            return
+        x1 = x[i]
+        caching = respond_velocity != 0
+        mask = far_mask(reaches, i, x_start[i], x1, thickness + slack + margin, ccd, caching,
+                        cache)
         if mask != 0:
             slot = wp.atomic_add(near_count, 0, 1)
             near_list[slot] = i
@@ -477,7 +495,49 @@ def _make_far_kernel(num: int):
         elif caching:
             cache.last[i] = x1
 
-    return far_kernel
+    @wp.kernel(module="unique")
+    def integrate_far(
+        x: wp.array(dtype=wp.vec3),
+        v: wp.array(dtype=wp.vec3),
+        f: wp.array(dtype=wp.vec3),
+        inv_mass: wp.array(dtype=float),
+        gravity: wp.vec3,
+        decay: float,
+        dt: float,
+        x_start: wp.array(dtype=wp.vec3),
+        reaches: wp.array(dtype=ObstacleReach),
+        thickness: float,
+        slack: float,
+        ccd: int,
+        cache: MeshCache,
+        near_count: wp.array(dtype=int),
+        near_list: wp.array(dtype=int),
+        near_mask: wp.array(dtype=int),
+    ):
+        """`integrate_symplectic_kernel`, then `far_kernel`'s tests of the new path (``apply``:
+        the cache is used and kept); only a listed vertex's start position is written to
+        ``x_start`` (the near pass reads no other)."""
+        i = wp.tid()
+        w = inv_mass[i]
+        fi = f[i]
+        f[i] = wp.vec3(0.0)  # cleared for the next step's forces
+        if w == 0.0:
+            return
+        x0 = x[i]
+        vi = symplectic_velocity(v[i], fi, w, gravity, decay, dt)
+        x1 = x0 + dt * vi
+        v[i] = vi
+        x[i] = x1
+        mask = far_mask(reaches, i, x0, x1, thickness + slack, ccd, True, cache)
+        if mask != 0:
+            x_start[i] = x0
+            slot = wp.atomic_add(near_count, 0, 1)
+            near_list[slot] = i
+            near_mask[slot] = mask
+        else:
+            cache.last[i] = x1
+
+    return far_kernel, integrate_far
 
 
 @wp.kernel
