@@ -611,9 +611,6 @@ def mesh_planes_kernel(
             ob = obstacles[k]
             mid = mesh_ids[k]
             j = 5 * (pose_offset + k)
-            p0 = wp.transform_point(poses[j + 2], x0)
-            p1 = wp.transform_point(poses[j + 3], x1)
-            d = p1 - p0
             ci = i * num + k
             r2 = cache.radius * cache.radius
             if ob.moving == 0 and cache.cand_count[ci] > 0:  # world-frame candidates
@@ -625,6 +622,9 @@ def mesh_planes_kernel(
                     planes.ref[c_e] = x0
                     planes.friction[c_e] = ob.friction
                     continue
+            p0 = wp.transform_point(poses[j + 2], x0)
+            p1 = wp.transform_point(poses[j + 3], x1)
+            d = p1 - p0
             cached = False
             if ob.moving != 0 and cache.cand_count[ci] > 0:
                 q = cache.cand_q[ci]
