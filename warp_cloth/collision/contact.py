@@ -59,8 +59,8 @@ contact from the same draped state; CPU, graph replay, medians; ranges over repe
 Implicit Euler and projective dynamics: +0-4 % (analytic), +7-12 % (960-triangle mesh): their
 steps cost milliseconds. Position-based dynamics: +15-21 % (analytic), +15-22 % (mesh), with the
 contact planes. Explicit Euler is the hard case: its substep is ~37 us for 1,089 vertices
-(~34 ns a vertex, all forces included), so any per-vertex pass shows: sphere +30-35 %, sphere and
-plane +38-48 %, spinning sphere +46-51 %, mesh +75-81 %, with the far tests inside the
+(~34 ns a vertex, all forces included), so any per-vertex pass shows: sphere +30-38 %, sphere and
+plane +38-48 %, spinning sphere +46-51 %, mesh +75-87 %, with the far tests inside the
 integrator's kernel (`integrate_and_apply`). The benchmark's floor row, a kernel written for that
 one static sphere and nothing else (far test, continuous test, projection, impulse), costs
 +23-25 %: a 20 % target for analytic obstacles is below what a per-vertex contact pass costs for

@@ -400,26 +400,26 @@ def mesh_vertex_near(
             cache.last[i] = wp.vec3(wp.nan)
 
 
-_FAR_KERNELS = {}
-_INTEGRATE_KERNELS = {}
+_KERNELS = {}
 
 
 def mesh_far_kernel(num: int):
     """The far pass for ``num`` meshes (a kernel per count, made on first use, so that the loop
     over the meshes is unrolled; see `warp_cloth.collision.analytic.analytic_far_kernel`)."""
-    kernel = _FAR_KERNELS.get(num)
-    if kernel is None:
-        kernel = _FAR_KERNELS[num] = _make_far_kernels(num)[0]
-    return kernel
+    return _kernels(num)[0]
 
 
 def integrate_mesh_far_kernel(num: int):
     """Symplectic Euler's vertex update with the far pass for ``num`` meshes in the same thread
     (`ObstacleContact.integrate_and_apply`)."""
-    kernel = _INTEGRATE_KERNELS.get(num)
-    if kernel is None:
-        kernel = _INTEGRATE_KERNELS[num] = _make_far_kernels(num)[1]
-    return kernel
+    return _kernels(num)[1]
+
+
+def _kernels(num: int):
+    kernels = _KERNELS.get(num)
+    if kernels is None:
+        kernels = _KERNELS[num] = _make_far_kernels(num)
+    return kernels
 
 
 def _make_far_kernels(num: int):
