@@ -127,6 +127,14 @@ def far_from(rb: ObstacleReach, x0: wp.vec3, x1: wp.vec3, reach: float, thicknes
     if rb.plane != 0:
         lb = wp.dot(r, rb.normal)
     else:
+        if rb.sweep == 0.0 and rb.turn == 0.0:
+            # static ball: a path no longer than the slack (reach - thickness) is far exactly
+            # when its end is (lb >= reach implies lb - thickness >= slack >= the path), so
+            # squared lengths decide it without a square root (most vertices, most steps)
+            sl = reach - thickness
+            if ccd == 0 or wp.length_sq(x1 - x0) <= sl * sl:
+                rr = rb.bound + reach
+                return wp.length_sq(r) >= rr * rr
         lb = wp.length(r) - rb.bound
     if lb < reach:
         return False

@@ -27,16 +27,21 @@ initialises all its variables and by-value call arguments for every thread, so a
 holding the near path cost every far vertex as much again; measured with ``warp-cloth bench
 contact``.)
 
-Distance cache (``apply`` only): each vertex keeps a lower bound of its distance to each mesh
-(``gap``, from the last query, searched ``margin`` beyond the reach) and the position it ended the
-last step at (``last``). While the step starts exactly there (and, for a moving mesh, at the time
-the last ``apply`` ended: ``ObstacleReach.fresh``) and ``gap`` minus the length of the path in the
-mesh's frame stays above the reach, the vertex skips the BVH queries: the distance cannot have
-dropped by more than that. For a moving mesh the path length is bounded by the vertex's own motion
-plus the mesh's translation and rotation over the step (`warp_cloth.collision.motion.ObstacleReach`).
-Anything else that moved the vertex in between (a state reset, a later correction, another mesh
-of this kernel) fails the ``last == x_start`` check and the vertex is queried again. A vertex that
-touched a mesh last step queries without the margin (a tighter query; it would not skip anyway).
+Distance cache (kept by ``apply``). Static mesh: each vertex keeps an anchor point ``a`` and
+``gap``, a lower bound of the distance from ``a`` to the mesh (from the last query at ``a``,
+searched ``margin`` beyond the reach, or from the mesh's bounding ball). While both ends of a
+path lie within ``gap - reach`` of ``a`` the whole path does (a ball is convex), so no point of it
+comes within the reach of the surface: the far test is two squared lengths, and nothing is
+written (it is a fact about space, not about the vertex's history, so anything may move the
+vertex in between). Moving mesh: ``gap`` bounds the distance of the vertex where it ended the
+last step (``last``); while the step starts exactly there (and at the time the last ``apply``
+ended: ``ObstacleReach.fresh``) and ``gap`` minus the length of the path in the mesh's frame
+(the vertex's own motion plus the mesh's translation and rotation over the step,
+`warp_cloth.collision.motion.ObstacleReach`) stays above the reach, the vertex skips the BVH
+queries and keeps the lowered bound. Anything else that moved the vertex in between (a state
+reset, a later correction, another mesh of this kernel) fails the ``last == x_start`` check and
+the vertex is queried again. A vertex that touched a mesh last step queries without the margin
+(a tighter query; it would not skip anyway).
 
 Candidate cache (for vertices in contact, which the distance cache cannot skip): after a query
 at a local point ``q`` with signed distance ``phi_q``, ``|phi_q| > r`` (``r`` =
@@ -116,8 +121,11 @@ MAX_CANDIDATES = 8
 class MeshCache:
     """Per-vertex, per-mesh caches of `mesh_vertex` (index ``i * num_meshes + k``)."""
 
-    gap: wp.array(dtype=float)  # lower bound of the distance at the end of the last step
-    last: wp.array(dtype=wp.vec3)  # where the vertex ended the last step (NaN: moved since)
+    gap: wp.array(dtype=float)  # lower bound of a distance to the mesh: static mesh, of
+    #                             `anchor`; moving mesh, of the vertex at the end of the last step
+    anchor: wp.array(dtype=wp.vec3)  # static meshes: the world point `gap` bounds the distance of
+    last: wp.array(dtype=wp.vec3)  # where the vertex ended the last step (NaN: moved since;
+    #                                moving meshes only)
     margin: float  # how far beyond the reach a distance query looks (gap cache)
     cand_q: wp.array(dtype=wp.vec3)  # local centre q of the candidate ball
     cand_phi: wp.array(dtype=float)  # signed distance of q (|phi_q| > radius)
@@ -125,6 +133,16 @@ class MeshCache:
     cand_tris: wp.array(dtype=wp.vec3)  # 3 local corners of each candidate face, MAX_CANDIDATES
     #                                     per entry (no index lookups when they are used)
     radius: float  # m: the ball radius (0: candidate cache off)
+
+
+@wp.func
+def keep_gap(cache: MeshCache, ci: int, moving: int, x: wp.vec3, g: float):
+    """Record ``g``, a lower bound of the distance of the world point ``x`` to the mesh (static
+    mesh: with ``x`` as the anchor of the bound; moving mesh: as the vertex's bound for the next
+    step, ``x`` being where it ends this one)."""
+    cache.gap[ci] = g
+    if moving == 0:
+        cache.anchor[ci] = x
 
 
 @wp.func
@@ -168,7 +186,7 @@ def face_closest(mid: wp.uint64, f: int, p: wp.vec3):
 
 
 @wp.func
-def cached_closest(mid: wp.uint64, cache: MeshCache, ci: int, p: wp.vec3):
+def cached_closest(cache: MeshCache, ci: int, p: wp.vec3):
     """(closest point, signed distance, normal) of ``p`` from the candidate faces of entry ``ci``
     (valid only for ``p`` in the entry's ball: see `mesh_vertex`)."""
     cnt = cache.cand_count[ci]
@@ -222,7 +240,43 @@ def refresh_candidates(mid: wp.uint64, closed: int, r: float, ci: int, q: wp.vec
     cand_count[ci] = cnt
 
 
-@wp.func
+@wp.func(inline=True)
+def static_cached_near(
+    ob: ObstacleData,
+    ci: int,
+    i: int,
+    x0: wp.vec3,
+    x1: wp.vec3,
+    v: wp.array(dtype=wp.vec3),
+    vi: wp.vec3,
+    touched: bool,
+    thickness: float,
+    reach: float,
+    respond_velocity: int,
+    caching: bool,
+    cache: MeshCache,
+):
+    """`mesh_near` for a static mesh whose candidate ball holds the vertex's whole path (most
+    vertices resting on a static mesh, most steps): the candidates are kept in the world frame,
+    so no transforms, and the surface does not move. Returns (x1, vi, touched) updated."""
+    c, phi, n = cached_closest(cache, ci, x1)
+    moved = phi < thickness
+    p = x1
+    if moved:
+        p = c + thickness * n
+    if caching:
+        keep_gap(cache, ci, 0, x1, wp.where(moved, 0.0, phi))
+    if moved or (respond_velocity != 0 and phi < reach):
+        vr = vi
+        if respond_velocity != 0 and not touched:
+            vr = v[i]
+        xo, vo = outcome_in_frame(x0, x1, p, n, vr, wp.vec3(0.0), n, ob.restitution, ob.friction,
+                                  respond_velocity)
+        return xo, vo, True
+    return x1, vi, touched
+
+
+@wp.func(inline=False)
 def mesh_near(
     obstacles: wp.array(dtype=ObstacleData),
     mesh_ids: wp.array(dtype=wp.uint64),
@@ -245,39 +299,17 @@ def mesh_near(
     cache: MeshCache,
 ):
     """Steps 0-3 for vertex ``i`` and mesh ``k`` (``j``: its first pose, ``ci``: its cache
-    entry) once the far tests did not reject it. Returns (x1, vi, touched) updated.
+    entry) once the far tests did not reject it and `static_cached_near` does not apply.
+    Returns (x1, vi, touched) updated.
 
-    Out of line, and given arrays rather than structs: Warp declares every variable of a
-    function at its top and initialises it on entry (structs and BVH query states included),
-    so the far path of every vertex must not carry this body's variables (measured: a call
-    that never ran, taking the obstacle's struct by value, doubled the far path's cost)."""
+    Out of line: Warp declares every variable of a function at its top and initialises it on
+    entry (BVH query states included), so the common static-candidate path must not carry this
+    body's variables (measured: the near pass of a cloth draped on a static mesh twice as
+    costly with it inline)."""
     reach = thickness + slack
     ob = obstacles[k]
     mid = mesh_ids[k]
     r2 = cache.radius * cache.radius
-    if ob.moving == 0 and cache.cand_count[ci] > 0:
-        # a static mesh's candidates are kept in the world frame: no transforms, and the
-        # surface does not move (the same steps as below otherwise)
-        q = cache.cand_q[ci]
-        if wp.length_sq(x1 - q) <= r2 and wp.length_sq(x0 - q) <= r2:
-            cw, phiw, nw = cached_closest(mid, cache, ci, x1)
-            movedw = False
-            pw = x1
-            if phiw < thickness:
-                pw = cw + thickness * nw
-                movedw = True
-            if caching:
-                cache.gap[ci] = phiw
-                if movedw:
-                    cache.gap[ci] = 0.0
-            if movedw or (respond_velocity != 0 and phiw < reach):
-                vr = vi
-                if respond_velocity != 0 and not touched:
-                    vr = v[i]
-                xo, vo = outcome_in_frame(x0, x1, pw, nw, vr, wp.vec3(0.0), nw, ob.restitution,
-                                          ob.friction, respond_velocity)
-                return xo, vo, True
-            return x1, vi, touched
     p0 = wp.transform_point(poses[j + 2], x0)
     p1 = wp.transform_point(poses[j + 3], x1)
     d = p1 - p0
@@ -292,7 +324,7 @@ def mesh_near(
     n = wp.vec3(0.0, 1.0, 0.0)
     len_d = float(0.0)
     if cached:
-        c, phi, n = cached_closest(mid, cache, ci, p1)
+        c, phi, n = cached_closest(cache, ci, p1)
     else:
         if ccd != 0:
             len_d = wp.length(d)
@@ -303,7 +335,7 @@ def mesh_near(
         if (lo[0] > ext[0] or lo[1] > ext[1] or lo[2] > ext[2]
                 or hi[0] < -ext[0] or hi[1] < -ext[1] or hi[2] < -ext[2]):
             if caching:
-                cache.gap[ci] = reach
+                keep_gap(cache, ci, ob.moving, x1, reach)
             return x1, vi, touched
         # closest point to the end position, as far as the path could reach (plus the
         # cache margin, so that a miss keeps the vertex out of the queries for a while)
@@ -316,7 +348,7 @@ def mesh_near(
         found, c, phi, n = closest(mid, ob.closed, p1, p0, ob.center, ob.size, radius)
         if not found:
             if caching:
-                cache.gap[ci] = radius
+                keep_gap(cache, ci, ob.moving, x1, radius)
             return x1, vi, touched  # no surface within reach of the end: no crossing
     moved = False
     p_in = p1
@@ -339,9 +371,7 @@ def mesh_near(
         p1 = c + thickness * n
         moved = True
     if caching:
-        cache.gap[ci] = phi
-        if moved:
-            cache.gap[ci] = 0.0
+        keep_gap(cache, ci, ob.moving, x1, wp.where(moved, 0.0, phi))
         if not cached and cache.radius > 0.0 and phi < reach + cache.radius:
             frame = wp.transform_identity()
             if ob.moving == 0:
@@ -358,7 +388,7 @@ def mesh_near(
     return x1, vi, touched
 
 
-@wp.func
+@wp.func(inline=True)
 def mesh_vertex_near(
     obstacles: wp.array(dtype=ObstacleData),
     mesh_ids: wp.array(dtype=wp.uint64),
@@ -382,9 +412,19 @@ def mesh_vertex_near(
     the 31st on are always tried), then the vertex's writes."""
     vi = wp.vec3(0.0)
     touched = bool(False)
-    for k in range(obstacles.shape[0]):
+    num = obstacles.shape[0]
+    r2 = cache.radius * cache.radius
+    for k in range(num):
         if k < 31 and ((mask >> k) & 1) == 0:
             continue
+        ci = i * num + k
+        if cache.cand_count[ci] > 0 and obstacles[k].moving == 0:
+            q = cache.cand_q[ci]
+            if wp.length_sq(x1 - q) <= r2 and wp.length_sq(x0 - q) <= r2:
+                x1, vi, touched = static_cached_near(obstacles[k], ci, i, x0, x1, v, vi, touched,
+                                                     thickness, thickness + slack,
+                                                     respond_velocity, caching, cache)
+                continue
         x1, vi, touched = mesh_near(obstacles, mesh_ids, poses, k, 5 * (pose_offset + k),
                                     i * obstacles.shape[0] + k, i, x0, x1, v, vi, touched, dt,
                                     thickness, slack, respond_velocity, ccd, caching, cache)
@@ -403,58 +443,82 @@ def mesh_vertex_near(
 _KERNELS = {}
 
 
-def mesh_far_kernel(num: int):
-    """The far pass for ``num`` meshes (a kernel per count, made on first use, so that the loop
-    over the meshes is unrolled; see `warp_cloth.collision.analytic.analytic_far_kernel`)."""
-    return _kernels(num)[0]
+def mesh_far_kernel(moving):
+    """The far pass for meshes whose ``moving`` flags are given, one per mesh (a kernel per
+    tuple of flags, made on first use, so that the loop over the meshes is unrolled and keeps
+    only each mesh's own test; see `warp_cloth.collision.analytic.analytic_far_kernel`)."""
+    return _kernels(moving)[0]
 
 
-def integrate_mesh_far_kernel(num: int):
-    """Symplectic Euler's vertex update with the far pass for ``num`` meshes in the same thread
-    (`ObstacleContact.integrate_and_apply`)."""
-    return _kernels(num)[1]
+def integrate_mesh_far_kernel(moving):
+    """Symplectic Euler's vertex update with the far pass of `mesh_far_kernel` in the same
+    thread (`ObstacleContact.integrate_and_apply`)."""
+    return _kernels(moving)[1]
 
 
-def _kernels(num: int):
-    kernels = _KERNELS.get(num)
+def _kernels(moving):
+    key = tuple(bool(m) for m in moving)
+    kernels = _KERNELS.get(key)
     if kernels is None:
-        kernels = _KERNELS[num] = _make_far_kernels(num)
+        kernels = _KERNELS[key] = _make_far_kernels(key)
     return kernels
 
 
-def _make_far_kernels(num: int):
+def _make_far_kernels(moving):
+    num = len(moving)
+    # which meshes move, as constants of the generated code: the unrolled loop keeps only the
+    # test each mesh needs (anchor balls for static meshes; the per-step budget for moving ones)
+    MOVING = wp.constant(sum(1 << k for k, m in enumerate(moving) if m))
+    ANY_MOVING = wp.constant(int(any(moving)))
+
     @wp.func
     def far_mask(reaches: wp.array(dtype=ObstacleReach), i: int, x0: wp.vec3, x1: wp.vec3,
                  reach: float, ccd: int, caching: bool, cache: MeshCache):
         """The far tests of vertex ``i`` against the ``num`` meshes (distance cache, then
-        bounding ball; the cache is read and kept with ``caching`` only). Returns the mask of
-        the meshes it passed none of (bit k: mesh k; meshes from the 31st on always)."""
-        valid = caching and cache.last[i] == x0
-        s = wp.length(x1 - x0)
+        bounding ball; the cache is kept with ``caching`` only). Returns the mask of the meshes
+        it passed none of (bit k: mesh k; meshes from the 31st on always)."""
+        valid = bool(False)
+        if ANY_MOVING != 0:
+            valid = caching and cache.last[i] == x0
         mask = int(0)
         for k in range(num):
             ci = i * num + k
-            # the length of the vertex's path in the mesh's frame is at most `path`
-            # (ObstacleReach; just |x1 - x0| for a static mesh, no distance to the origin needed)
-            path = s
             rb = reaches[k]
-            sweep = rb.sweep
-            turn = rb.turn
             origin = rb.origin
-            if sweep != 0.0 or turn != 0.0:
-                path = s + sweep + turn * (wp.length(x1 - origin) + s + sweep)
-            if valid and rb.fresh != 0:
-                g = cache.gap[ci] - path  # a lower bound of the distance along the path
-                if g > reach:
-                    cache.gap[ci] = g
+            if ((MOVING >> k) & 1) == 0:
+                # static mesh: no surface within gap of the anchor, so a path whose both ends
+                # lie within gap - reach of it (a ball is convex: so does the whole path) stays
+                # out of reach. Squared lengths only, nothing written: most vertices, most steps
+                h = cache.gap[ci] - reach
+                if h > 0.0:
+                    a = cache.anchor[ci]
+                    h2 = h * h
+                    if wp.length_sq(x1 - a) < h2 and wp.length_sq(x0 - a) < h2:
+                        continue
+                # far test in the world frame: outside the bounding ball by more than the
+                # reach and than the path length; the end becomes the vertex's new anchor
+                lb = wp.length(x1 - origin) - rb.bound - reach
+                if lb > 0.0 and (ccd == 0 or lb * lb >= wp.length_sq(x1 - x0)):
+                    if caching:
+                        cache.gap[ci] = lb + reach
+                        cache.anchor[ci] = x1
                     continue
-            # far test in the world frame (no transform): outside the bounding ball by more
-            # than the reach and than the path length
-            lb = wp.length(x1 - origin) - rb.bound - reach
-            if lb > 0.0 and (ccd == 0 or lb >= path):
-                if caching:
-                    cache.gap[ci] = lb + reach
-                continue
+            else:
+                # moving mesh: the length of the vertex's path in the mesh's frame is at most
+                # `path` (ObstacleReach)
+                s = wp.length(x1 - x0)
+                sweep = rb.sweep
+                path = s + sweep + rb.turn * (wp.length(x1 - origin) + s + sweep)
+                if valid and rb.fresh != 0:
+                    g = cache.gap[ci] - path  # a lower bound of the distance along the path
+                    if g > reach:
+                        cache.gap[ci] = g
+                        continue
+                lb = wp.length(x1 - origin) - rb.bound - reach
+                if lb > 0.0 and (ccd == 0 or lb >= path):
+                    if caching:
+                        cache.gap[ci] = lb + reach
+                    continue
             mask = mask | (1 << wp.min(k, 31))
         return mask
 
@@ -492,7 +556,7 @@ def _make_far_kernels(num: int):
             slot = wp.atomic_add(near_count, 0, 1)
             near_list[slot] = i
             near_mask[slot] = mask
-        elif caching:
+        elif caching and ANY_MOVING != 0:
             cache.last[i] = x1
 
     @wp.kernel(module="unique")
@@ -534,7 +598,7 @@ def _make_far_kernels(num: int):
             slot = wp.atomic_add(near_count, 0, 1)
             near_list[slot] = i
             near_mask[slot] = mask
-        else:
+        elif ANY_MOVING != 0:
             cache.last[i] = x1
 
     return far_kernel, integrate_far
@@ -616,7 +680,7 @@ def mesh_planes_kernel(
             if ob.moving == 0 and cache.cand_count[ci] > 0:  # world-frame candidates
                 q = cache.cand_q[ci]
                 if wp.length_sq(x1 - q) <= r2 and wp.length_sq(x0 - q) <= r2:
-                    cw, phiw, nw = cached_closest(mid, cache, ci, x1)
+                    cw, phiw, nw = cached_closest(cache, ci, x1)
                     planes.point[c_e] = cw + thickness * nw
                     planes.normal[c_e] = nw
                     planes.ref[c_e] = x0
@@ -633,7 +697,7 @@ def mesh_planes_kernel(
             phi = float(0.0)
             n = wp.vec3(0.0, 1.0, 0.0)
             if cached:
-                c, phi, n = cached_closest(mid, cache, ci, p1)
+                c, phi, n = cached_closest(cache, ci, p1)
             else:
                 len_d = float(0.0)
                 if ccd != 0:
