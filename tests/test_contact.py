@@ -516,20 +516,19 @@ def test_mesh_candidate_cache_matches_bvh_queries(motion):
     used = touching = 0
     for k in range(700):
         if k % 20 == 0 and k > 0:
-            saved = [a.numpy().copy() for a in (st.x, st.v, st.time, cache.gap, cache.last,
-                                                cache.cand_q, cache.cand_phi, cache.cand_count,
-                                                cache.cand_tris)]
+            arrays = (st.x, st.v, st.time, cache.gap, cache.anchor, cache.last, cache.cand_q,
+                      cache.cand_phi, cache.cand_r2, cache.cand_count, cache.cand_tris)
+            saved = [a.numpy().copy() for a in arrays]
             ends = []
             for clear in (True, False):  # with the candidates last: the run goes on with them
-                for a, val in zip((st.x, st.v, st.time, cache.gap, cache.last, cache.cand_q,
-                                   cache.cand_phi, cache.cand_count, cache.cand_tris), saved):
+                for a, val in zip(arrays, saved):
                     a.assign(val)
                 if clear:
                     cache.cand_count.zero_()
                 solver.step(st, dt)
                 ends.append((st.positions().copy(), st.velocities().copy()))
             (xu, vu), (xc, vc) = ends
-            used += int((saved[7] > 0).sum())
+            used += int((saved[9] != 0).sum())
             assert np.abs(xc - xu).max() < 1e-6
             assert np.abs(vc - vu).max() < 1e-6 / dt
             phi = contact.signed_distances(xc, st.t)

@@ -264,6 +264,7 @@ class ObstacleContact:
             c.margin = self.cache_margin
             c.cand_q = wp.zeros(n_e, dtype=wp.vec3, device=d)
             c.cand_phi = wp.zeros(n_e, dtype=float, device=d)
+            c.cand_r2 = wp.zeros(n_e, dtype=float, device=d)
             c.cand_count = wp.zeros(n_e, dtype=int, device=d)
             c.cand_tris = wp.zeros(3 * n_e * MAX_CANDIDATES, dtype=wp.vec3, device=d)
             c.radius = self.candidate_radius

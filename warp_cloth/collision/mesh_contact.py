@@ -113,8 +113,15 @@ def closest(mid: wp.uint64, closed: int, p: wp.vec3, p_from: wp.vec3, center: wp
     return True, c, phi, n
 
 
-#: most candidate faces a vertex keeps per mesh (more: no candidate cache for it)
-MAX_CANDIDATES = 8
+#: most candidate faces a vertex keeps per mesh (more: no candidate cache for it; up to 10 faces
+#: meet near a pole of the bundled sphere, and a vertex without a cache queries the BVH each step)
+MAX_CANDIDATES = 16
+#: `MeshCache.cand_count` of an entry whose closest point is, throughout its ball, the projection
+#: onto one face's plane (stored as a point and the unit normal, in place of the corners)
+PLANE = -1
+#: m; a candidate face counts as behind the plane when no corner is more than this in front
+#: (float32 rounding of corners transformed to the world frame)
+PLANE_TOLERANCE = 1.0e-7
 
 
 @wp.struct
@@ -128,8 +135,10 @@ class MeshCache:
     #                                moving meshes only)
     margin: float  # how far beyond the reach a distance query looks (gap cache)
     cand_q: wp.array(dtype=wp.vec3)  # local centre q of the candidate ball
-    cand_phi: wp.array(dtype=float)  # signed distance of q (|phi_q| > radius)
-    cand_count: wp.array(dtype=int)  # candidate faces (0: no cache)
+    cand_phi: wp.array(dtype=float)  # signed distance of q (|phi_q| > the ball's radius)
+    cand_r2: wp.array(dtype=float)  # squared radius of the ball (`radius`, or a quarter of it
+    #                                 where too many faces are near: see `refresh_candidates`)
+    cand_count: wp.array(dtype=int)  # candidate faces (0: no cache; PLANE: one plane)
     cand_tris: wp.array(dtype=wp.vec3)  # 3 local corners of each candidate face, MAX_CANDIDATES
     #                                     per entry (no index lookups when they are used)
     radius: float  # m: the ball radius (0: candidate cache off)
@@ -190,6 +199,11 @@ def cached_closest(cache: MeshCache, ci: int, p: wp.vec3):
     """(closest point, signed distance, normal) of ``p`` from the candidate faces of entry ``ci``
     (valid only for ``p`` in the entry's ball: see `mesh_vertex`)."""
     cnt = cache.cand_count[ci]
+    if cnt == PLANE:
+        b0 = 3 * ci * MAX_CANDIDATES
+        pn = cache.cand_tris[b0 + 1]
+        h = wp.dot(p - cache.cand_tris[b0], pn)
+        return p - h * pn, h, pn
     best = float(1.0e30)
     c = p
     for j in range(cnt):
@@ -207,36 +221,97 @@ def cached_closest(cache: MeshCache, ci: int, p: wp.vec3):
     return c, dist, n
 
 
-@wp.func(inline=False)
-def refresh_candidates(mid: wp.uint64, closed: int, r: float, ci: int, q: wp.vec3,
-                       center: wp.vec3, half: wp.vec3, max_dist: float, T: wp.transform,
-                       cand_q: wp.array(dtype=wp.vec3), cand_phi: wp.array(dtype=float),
-                       cand_count: wp.array(dtype=int), cand_tris: wp.array(dtype=wp.vec3)):
-    """New candidate ball at ``q``: its exact signed distance by a BVH query, then every face
-    within ``|phi_q| + 2 radius`` of ``q`` (an AABB query and exact triangle distances), stored
-    mapped by the rigid ``T`` (a static mesh's pose: its cache lives in the world frame; identity
-    for a moving mesh, whose cache stays in its own frame). No cache when ``|phi_q| <= radius``
-    (the ball would reach the surface) or when there are more than `MAX_CANDIDATES` faces."""
-    cand_count[ci] = 0
-    found, c, phi, n = closest(mid, closed, q, q, center, half, max_dist)
-    if not found or wp.abs(phi) <= r:
-        return
-    keep = wp.abs(phi) + 2.0 * r
+@wp.func
+def inside_by(u: wp.vec3, w: wp.vec3, z: wp.vec3, n: wp.vec3, q: wp.vec3, r: float):
+    """True when ``q``'s projection onto the plane (normal ``n``) of triangle ``u w z`` lies at
+    least ``r`` on the triangle's side of its edge ``u w``."""
+    m = wp.normalize(wp.cross(n, w - u))
+    if wp.dot(z - u, m) < 0.0:
+        m = -m
+    return wp.dot(q - u, m) >= r
+
+
+@wp.func
+def gather_candidates(mid: wp.uint64, ci: int, q: wp.vec3, keep: float, T: wp.transform,
+                      cand_tris: wp.array(dtype=wp.vec3)):
+    """Store (mapped by ``T``) the corners of every face within ``keep`` of ``q`` for entry
+    ``ci``; returns (their number, or ``MAX_CANDIDATES + 1`` when there are more; the face
+    closest to ``q``)."""
     lim = keep * (1.0 + 1.0e-5) + 1.0e-7  # float32 rounding of the distances below
     query = wp.mesh_query_aabb(mid, q - wp.vec3(lim), q + wp.vec3(lim))
     f = int(0)
     cnt = int(0)
+    best = float(1.0e30)
+    bf = int(-1)
     while wp.mesh_query_aabb_next(query, f):
-        if wp.length(q - face_closest(mid, f, q)) <= lim:
+        dq = wp.length(q - face_closest(mid, f, q))
+        if dq <= lim:
             if cnt == MAX_CANDIDATES:
-                return  # too many: no cache (count stays 0)
+                return MAX_CANDIDATES + 1, bf
             b = 3 * (ci * MAX_CANDIDATES + cnt)
             cand_tris[b] = wp.transform_point(T, wp.mesh_get_point(mid, 3 * f))
             cand_tris[b + 1] = wp.transform_point(T, wp.mesh_get_point(mid, 3 * f + 1))
             cand_tris[b + 2] = wp.transform_point(T, wp.mesh_get_point(mid, 3 * f + 2))
+            if dq < best:
+                best = dq
+                bf = f
             cnt += 1
+    return cnt, bf
+
+
+@wp.func(inline=False)
+def refresh_candidates(mid: wp.uint64, closed: int, r: float, ci: int, q: wp.vec3,
+                       center: wp.vec3, half: wp.vec3, max_dist: float, T: wp.transform,
+                       cand_q: wp.array(dtype=wp.vec3), cand_phi: wp.array(dtype=float),
+                       cand_count: wp.array(dtype=int), cand_tris: wp.array(dtype=wp.vec3),
+                       cand_r2: wp.array(dtype=float)):
+    """New candidate ball at ``q``: its exact signed distance by a BVH query, then every face
+    within ``|phi_q| + 2 radius`` of ``q`` (an AABB query and exact triangle distances), stored
+    mapped by the rigid ``T`` (a static mesh's pose: its cache lives in the world frame; identity
+    for a moving mesh, whose cache stays in its own frame). No cache when ``|phi_q| <= radius``
+    (the ball would reach the surface) or when there are more than `MAX_CANDIDATES` faces, even
+    in a ball of a quarter of the radius (tried when the first has too many).
+
+    One plane (`PLANE`) instead of the faces when, for every point ``p`` of the ball, the closest
+    point is ``p``'s projection onto the plane of the face ``F`` closest to ``q``: ``q`` is
+    outside (``phi_q > radius``, so the whole ball is in front of that plane), the ball projects
+    inside ``F`` (each edge at least ``radius`` from ``q``'s projection: the closest point of
+    ``F`` is the projection), and every other candidate lies behind the plane (then a segment
+    from ``p`` to any of its points crosses the plane: it is no closer than the plane). Most
+    vertices resting on a locally convex surface."""
+    cand_count[ci] = 0
+    found, c, phi, n = closest(mid, closed, q, q, center, half, max_dist)
+    if not found or wp.abs(phi) <= r:
+        return
+    cnt, bf = gather_candidates(mid, ci, q, wp.abs(phi) + 2.0 * r, T, cand_tris)
+    if cnt > MAX_CANDIDATES:  # many faces meet nearby (a pole, a fan): a smaller ball
+        r = 0.25 * r
+        cnt, bf = gather_candidates(mid, ci, q, wp.abs(phi) + 2.0 * r, T, cand_tris)
+        if cnt > MAX_CANDIDATES:
+            return  # still too many: no cache (count stays 0)
     cand_q[ci] = wp.transform_point(T, q)
     cand_phi[ci] = phi
+    cand_r2[ci] = r * r
+    if phi > r and bf >= 0:
+        a = wp.mesh_get_point(mid, 3 * bf)
+        b1 = wp.mesh_get_point(mid, 3 * bf + 1)
+        c1 = wp.mesh_get_point(mid, 3 * bf + 2)
+        nf = wp.normalize(wp.cross(b1 - a, c1 - a))
+        if wp.dot(q - a, nf) < 0.0:
+            nf = -nf
+        plane = inside_by(a, b1, c1, nf, q, r) and inside_by(b1, c1, a, nf, q, r) and inside_by(
+            c1, a, b1, nf, q, r)
+        if plane:
+            aw = wp.transform_point(T, a)
+            nw = wp.transform_vector(T, nf)
+            for j in range(3 * cnt):
+                if wp.dot(cand_tris[3 * ci * MAX_CANDIDATES + j] - aw, nw) > PLANE_TOLERANCE:
+                    plane = False
+            if plane:
+                b0 = 3 * ci * MAX_CANDIDATES
+                cand_tris[b0] = aw
+                cand_tris[b0 + 1] = nw
+                cnt = PLANE
     cand_count[ci] = cnt
 
 
@@ -309,15 +384,15 @@ def mesh_near(
     reach = thickness + slack
     ob = obstacles[k]
     mid = mesh_ids[k]
-    r2 = cache.radius * cache.radius
     p0 = wp.transform_point(poses[j + 2], x0)
     p1 = wp.transform_point(poses[j + 3], x1)
     d = p1 - p0
     # candidate cache: the whole path inside the ball of the last refresh, so the closest
     # point is on one of its faces and no surface is crossed (no ray query)
     cached = False
-    if ob.moving != 0 and cache.cand_count[ci] > 0:
+    if ob.moving != 0 and cache.cand_count[ci] != 0:
         q = cache.cand_q[ci]
+        r2 = cache.cand_r2[ci]
         cached = wp.length_sq(p1 - q) <= r2 and wp.length_sq(p0 - q) <= r2
     c = p1
     phi = float(0.0)
@@ -378,7 +453,8 @@ def mesh_near(
                 frame = poses[j + 1]
             refresh_candidates(mid, ob.closed, cache.radius, ci, p1, ob.center, ob.size,
                                reach + 3.0 * cache.radius, frame, cache.cand_q,
-                               cache.cand_phi, cache.cand_count, cache.cand_tris)
+                               cache.cand_phi, cache.cand_count, cache.cand_tris,
+                               cache.cand_r2)
     if moved or (respond_velocity != 0 and phi < reach):
         if respond_velocity != 0 and not touched:
             vi = v[i]
@@ -413,13 +489,13 @@ def mesh_vertex_near(
     vi = wp.vec3(0.0)
     touched = bool(False)
     num = obstacles.shape[0]
-    r2 = cache.radius * cache.radius
     for k in range(num):
         if k < 31 and ((mask >> k) & 1) == 0:
             continue
         ci = i * num + k
-        if cache.cand_count[ci] > 0 and obstacles[k].moving == 0:
+        if cache.cand_count[ci] != 0 and obstacles[k].moving == 0:
             q = cache.cand_q[ci]
+            r2 = cache.cand_r2[ci]
             if wp.length_sq(x1 - q) <= r2 and wp.length_sq(x0 - q) <= r2:
                 x1, vi, touched = static_cached_near(obstacles[k], ci, i, x0, x1, v, vi, touched,
                                                      thickness, thickness + slack,
@@ -676,9 +752,9 @@ def mesh_planes_kernel(
             mid = mesh_ids[k]
             j = 5 * (pose_offset + k)
             ci = i * num + k
-            r2 = cache.radius * cache.radius
-            if ob.moving == 0 and cache.cand_count[ci] > 0:  # world-frame candidates
+            if ob.moving == 0 and cache.cand_count[ci] != 0:  # world-frame candidates
                 q = cache.cand_q[ci]
+                r2 = cache.cand_r2[ci]
                 if wp.length_sq(x1 - q) <= r2 and wp.length_sq(x0 - q) <= r2:
                     cw, phiw, nw = cached_closest(cache, ci, x1)
                     planes.point[c_e] = cw + thickness * nw
@@ -690,8 +766,9 @@ def mesh_planes_kernel(
             p1 = wp.transform_point(poses[j + 3], x1)
             d = p1 - p0
             cached = False
-            if ob.moving != 0 and cache.cand_count[ci] > 0:
+            if ob.moving != 0 and cache.cand_count[ci] != 0:
                 q = cache.cand_q[ci]
+                r2 = cache.cand_r2[ci]
                 cached = wp.length_sq(p1 - q) <= r2 and wp.length_sq(p0 - q) <= r2
             c = p1
             phi = float(0.0)
