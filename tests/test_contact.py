@@ -12,6 +12,7 @@ from warp_cloth.collision import (
     PENETRATION_TOLERANCE, Box, KeyframePath, MeshObstacle, Motion, ObstacleContact, Plane,
     Sphere, quat_from_axis_angle,
 )
+from warp_cloth.collision import mesh_contact
 from warp_cloth.collision.scenes import asset_path, sheet_model
 from warp_cloth.scene import suggest_substeps
 from warp_cloth.solvers import available
@@ -595,3 +596,57 @@ def test_explicit_fused_contact_matches_separate_pass(kind):
     x_s, v_s, _ = run(False)
     assert touching >= 5  # the cloth lay on the obstacles
     assert np.array_equal(x_f, x_s) and np.array_equal(v_f, v_s)
+
+
+@wp.kernel
+def _candidates_vs_bvh_kernel(mid: wp.uint64, q: wp.vec3, r: float, cache: mesh_contact.MeshCache,
+                              points: wp.array(dtype=wp.vec3), cached: wp.array(dtype=float),
+                              exact: wp.array(dtype=float)):
+    i = wp.tid()
+    if i == 0:
+        mesh_contact.refresh_candidates(mid, 0, r, 0, q, wp.vec3(0.0), wp.vec3(1.0e3), 1.0,
+                                        wp.transform_identity(), cache.cand_q, cache.cand_phi,
+                                        cache.cand_count, cache.cand_tris, cache.cand_r2)
+        for j in range(points.shape[0]):
+            c, phi, n = mesh_contact.cached_closest(cache, 0, points[j])
+            cached[j] = phi
+            found, c2, phi2, n2 = mesh_contact.closest(mid, 0, points[j], points[j], wp.vec3(0.0),
+                                                       wp.vec3(1.0e3), 1.0)
+            exact[j] = phi2
+
+
+@pytest.mark.parametrize("wall, qx", [(False, 0.025), (True, 0.025), (False, 0.998)])
+def test_candidate_plane_only_where_no_other_face_is_in_front(wall, qx):
+    """A ball over a floor near a concave corner: with a wall within reach of the ball (in front
+    of the floor's plane) the floor's plane alone would be wrong (points nearer the wall), so the
+    entry keeps the faces; without the wall it keeps one plane, unless the ball reaches past the
+    floor's border (qx = 0.998: beyond it the closest point is on the border, not the plane).
+    Either way the cached closest distance equals the BVH's at points across the ball."""
+    v = [[0, 0, -1], [1, 0, -1], [1, 0, 1], [0, 0, 1]]
+    t = [[0, 2, 1], [0, 3, 2]]
+    if wall:
+        v += [[0, 1, -1], [0, 1, 1]]
+        t += [[0, 4, 5], [0, 5, 3]]
+    ob = MeshObstacle((np.array(v, float), np.array(t)), closed=False)
+    mesh = ob.wp_mesh("cpu")
+    n_e = 1
+    cache = mesh_contact.MeshCache()
+    cache.cand_q = wp.zeros(n_e, dtype=wp.vec3)
+    cache.cand_phi = wp.zeros(n_e, dtype=float)
+    cache.cand_r2 = wp.zeros(n_e, dtype=float)
+    cache.cand_count = wp.zeros(n_e, dtype=int)
+    cache.cand_tris = wp.zeros(3 * n_e * mesh_contact.MAX_CANDIDATES, dtype=wp.vec3)
+    q, r = np.array([qx, 0.02, 0.0]), 0.005
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(200, 3))
+    pts = q + r * 0.999 * d / np.linalg.norm(d, axis=1)[:, None] * rng.random((200, 1)) ** (1 / 3)
+    pts = np.vstack([pts, [[qx - 0.0035, 0.0225, 0.0], [qx + 0.0035, 0.0225, 0.0]]])
+    cached, exact = wp.zeros(len(pts), dtype=float), wp.zeros(len(pts), dtype=float)
+    wp.launch(_candidates_vs_bvh_kernel, 1, [mesh.id, wp.vec3(*q), r, cache,
+                                             wp.array(pts.astype(np.float32), dtype=wp.vec3),
+                                             cached, exact])
+    count = int(cache.cand_count.numpy()[0])
+    assert (count == mesh_contact.PLANE) == (not wall and qx < 0.5)
+    assert np.abs(cached.numpy() - exact.numpy()).max() < 1e-6
+    if wall:
+        assert exact.numpy()[-2] == pytest.approx(0.0215, abs=1e-6)  # nearer the wall
