@@ -12,7 +12,7 @@ from warp_cloth.collision import (
     PENETRATION_TOLERANCE, Box, KeyframePath, MeshObstacle, Motion, ObstacleContact, Plane,
     Sphere, quat_from_axis_angle,
 )
-from warp_cloth.collision import mesh_contact
+from warp_cloth.collision import analytic, mesh_contact
 from warp_cloth.collision.scenes import asset_path, sheet_model
 from warp_cloth.scene import suggest_substeps
 from warp_cloth.solvers import available
@@ -462,9 +462,10 @@ def test_mesh_distance_cache_matches_uncached(motion):
 
 @pytest.mark.parametrize("solver_name", ["explicit", "pbd"])
 def test_static_world_frame_path_matches_general_path(solver_name):
-    """Static spheres and planes take a world-frame shortcut (`ObstacleReach.fast`: no transforms,
-    zero surface velocity); from the same states in contact, a step with the general local-frame
-    path gives the same result (to float32 rounding of the transforms)."""
+    """Static spheres and planes take a world-frame shortcut (no transforms, zero surface
+    velocity: compiled in by their `far_kinds`, and `ObstacleReach.fast` for the iterations'
+    planes); from the same states in contact, a step with the general local-frame path gives the
+    same result (to float32 rounding of the transforms)."""
     model = sheet_model(res=10, size=0.7, height=0.7)
     obs = [Sphere(0.15, (0.05, 0.45, 0.0)), Plane((0.3, 1.0, 0.0), (0.0, 0.42, 0.0))]
     contact = ObstacleContact(model, obs, friction=0.3, restitution=0.2)
@@ -472,6 +473,9 @@ def test_static_world_frame_path_matches_general_path(solver_name):
     general = fast.copy()
     general["fast"] = 0
     assert set(fast["fast"]) == {1, 2}
+    fast_kinds = contact._far_kinds
+    assert fast_kinds == (analytic.FAR_SPHERE, analytic.FAR_PLANE)
+    general_kinds = (analytic.FAR_GENERAL,) * 2
     solver = make_solver(solver_name, model)
     solver.add_correction(contact)
     st = model.state()
@@ -481,8 +485,10 @@ def test_static_world_frame_path_matches_general_path(solver_name):
         if k % 25 == 0:
             x, v, t = st.positions().copy(), st.velocities().copy(), st.t
             ends = []
-            for record in (general, fast):  # the fast one last: the run goes on with it
+            # the fast one last: the run goes on with it
+            for record, kinds in ((general, general_kinds), (fast, fast_kinds)):
                 contact.reaches.assign(record)
+                contact._far_kinds = kinds
                 st.x.assign(x.astype(np.float32))
                 st.v.assign(v.astype(np.float32))
                 st.time.assign(np.array([t]))

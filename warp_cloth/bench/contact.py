@@ -97,31 +97,39 @@ def floor_sphere_kernel(x: wp.array(dtype=wp.vec3), x_start: wp.array(dtype=wp.v
     x1 = x[i]
     x0 = x_start[i]
     p1 = x1 - center
+    reach = thickness + slack
+    d = x1 - x0
+    s2 = wp.dot(d, d)
+    short = s2 <= slack * slack
+    if short:  # far exactly when the end is (squared lengths)
+        rr = radius + reach
+        if wp.dot(p1, p1) >= rr * rr:
+            return
     l1 = wp.length(p1)
     phi = l1 - radius
-    reach = thickness + slack
-    if phi >= reach:
+    if not short and phi >= reach:
         g = phi - thickness
-        if g * g >= wp.length_sq(x1 - x0):
+        if g * g >= s2:
             return
     p0 = x0 - center
     n = wp.vec3(0.0, 1.0, 0.0)
     if l1 > 1.0e-9:
         n = p1 / l1
     moved = False
-    # continuous test: first entry of p0 -> p1 into the sphere inflated by the thickness
-    d = p1 - p0
+    # continuous test (paths longer than the slack): first entry of p0 -> p1 into the sphere
+    # inflated by the thickness
     r = radius + thickness
-    qa = wp.dot(d, d)
-    qb = wp.dot(p0, d)
+    dl = p1 - p0
+    qa = wp.dot(dl, dl)
+    qb = wp.dot(p0, dl)
     qc = wp.dot(p0, p0) - r * r
-    if qc > 0.0 and qa > 0.0:
+    if qc > 0.0 and qa > slack * slack:
         disc = qb * qb - qa * qc
         if disc >= 0.0:
             t = (-qb - wp.sqrt(disc)) / qa
             if t >= 0.0 and t <= 1.0:
-                nh = wp.normalize(p0 + t * d)
-                p1 = p1 + wp.max(-wp.dot(p1 - (p0 + t * d), nh), 0.0) * nh
+                nh = wp.normalize(p0 + t * dl)
+                p1 = p1 + wp.max(-wp.dot(p1 - (p0 + t * dl), nh), 0.0) * nh
                 l1 = wp.length(p1)
                 phi = l1 - radius
                 n = p1 / l1

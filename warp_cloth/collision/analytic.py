@@ -69,10 +69,13 @@ def shape_phi(kind: int, size: wp.vec3, p: wp.vec3):
 
 
 @wp.func
-def shape_ccd(kind: int, size: wp.vec3, th: float, p0: wp.vec3, p1: wp.vec3):
+def shape_ccd(kind: int, size: wp.vec3, th: float, p0: wp.vec3, p1: wp.vec3, short2: float):
     """First entry of the segment p0 -> p1 into the shape inflated by ``th``.
 
-    Returns (hit, entry point, outward normal there). Only when p0 starts outside.
+    Returns (hit, entry point, outward normal there). Only when p0 starts outside. A sphere is
+    not swept by a path no longer than ``sqrt(short2)`` (the contact passes the slack: a vertex
+    resting on it moves that little, and its end's radial projection is all it needs; such a
+    path cannot cross the sphere, and cuts at most ``short2 / (8 R)`` into it between its ends).
     """
     d = p1 - p0
     if kind == KIND_SPHERE:
@@ -80,7 +83,7 @@ def shape_ccd(kind: int, size: wp.vec3, th: float, p0: wp.vec3, p1: wp.vec3):
         a = wp.dot(d, d)
         b = wp.dot(p0, d)
         c = wp.dot(p0, p0) - r * r
-        if c > 0.0 and a > 0.0:
+        if c > 0.0 and a > short2:
             disc = b * b - a * c
             if disc >= 0.0:
                 t = (-b - wp.sqrt(disc)) / a
@@ -115,37 +118,64 @@ def shape_ccd(kind: int, size: wp.vec3, th: float, p0: wp.vec3, p1: wp.vec3):
 
 
 @wp.func
-def far_from(rb: ObstacleReach, x0: wp.vec3, x1: wp.vec3, reach: float, thickness: float,
-             ccd: int):
-    """True when the vertex's path ``x0 -> x1`` provably stays out of the obstacle's reach this
-    step (then the vertex needs nothing from it). World frame, no transform: ``lb`` is a lower
-    bound of phi at the end (exact for a plane and a sphere), phi is 1-Lipschitz, and the path in
-    the obstacle's frame is no longer than ``|x1 - x0|`` plus what the obstacle's translation and
-    rotation move the vertex's local position by (`ObstacleReach`)."""
-    r = x1 - rb.origin
-    lb = float(0.0)
-    if rb.plane != 0:
-        lb = wp.dot(r, rb.normal)
-    else:
-        if rb.sweep == 0.0 and rb.turn == 0.0:
-            # static ball: a path no longer than the slack (reach - thickness) is far exactly
-            # when its end is (lb >= reach implies lb - thickness >= slack >= the path), so
-            # squared lengths decide it without a square root (most vertices, most steps)
-            sl = reach - thickness
-            if ccd == 0 or wp.length_sq(x1 - x0) <= sl * sl:
-                rr = rb.bound + reach
-                return wp.length_sq(r) >= rr * rr
-        lb = wp.length(r) - rb.bound
+def static_ball_far(reaches: wp.array(dtype=ObstacleReach), k: int, x0: wp.vec3, x1: wp.vec3,
+                    reach: float, thickness: float, ccd: int):
+    """`far_from` for a static obstacle other than a plane: its bounding ball (a sphere's is
+    itself). A path no longer than the slack (``reach - thickness``) is far exactly when its end
+    is (``lb >= reach`` implies ``lb - thickness >= slack >=`` the path), so squared lengths
+    decide it without a square root: most vertices, most steps."""
+    p = x1 - reaches[k].origin
+    s2 = wp.length_sq(x1 - x0)
+    sl = reach - thickness
+    if ccd == 0 or s2 <= sl * sl:
+        rr = reaches[k].bound + reach
+        return wp.length_sq(p) >= rr * rr
+    lb = wp.length(p) - reaches[k].bound
+    gap = lb - thickness
+    return lb >= reach and gap * gap >= s2
+
+
+@wp.func
+def static_plane_far(reaches: wp.array(dtype=ObstacleReach), k: int, x0: wp.vec3, x1: wp.vec3,
+                     reach: float, thickness: float, ccd: int):
+    """`far_from` for a static plane (exact)."""
+    lb = wp.dot(x1 - reaches[k].origin, reaches[k].normal)
     if lb < reach:
         return False
     if ccd == 0:
         return True
     gap = lb - thickness
-    s2 = wp.length_sq(x1 - x0)
-    if rb.sweep == 0.0 and rb.turn == 0.0:
-        return gap * gap >= s2
-    s = wp.sqrt(s2)
-    return gap >= s + rb.sweep + rb.turn * (wp.length(r) + s + rb.sweep)
+    return gap * gap >= wp.length_sq(x1 - x0)
+
+
+@wp.func
+def far_from(reaches: wp.array(dtype=ObstacleReach), k: int, x0: wp.vec3, x1: wp.vec3,
+             reach: float, thickness: float, ccd: int):
+    """True when the vertex's path ``x0 -> x1`` provably stays out of obstacle ``k``'s reach
+    this step (then the vertex needs nothing from it). World frame, no transform: ``lb`` is a
+    lower bound of phi at the end (exact for a plane and a sphere), phi is 1-Lipschitz, and the
+    path in the obstacle's frame is no longer than ``|x1 - x0|`` plus what the obstacle's
+    translation and rotation move the vertex's local position by (`ObstacleReach`). The fields
+    are read in place: a struct passed by value is copied at every call (measured: a third of
+    the far pass)."""
+    sweep = reaches[k].sweep
+    turn = reaches[k].turn
+    if sweep == 0.0 and turn == 0.0:
+        if reaches[k].plane != 0:
+            return static_plane_far(reaches, k, x0, x1, reach, thickness, ccd)
+        return static_ball_far(reaches, k, x0, x1, reach, thickness, ccd)
+    r = x1 - reaches[k].origin
+    lb = float(0.0)
+    if reaches[k].plane != 0:
+        lb = wp.dot(r, reaches[k].normal)
+    else:
+        lb = wp.length(r) - reaches[k].bound
+    if lb < reach:
+        return False
+    if ccd == 0:
+        return True
+    s = wp.length(x1 - x0)
+    return lb - thickness >= s + sweep + turn * (wp.length(r) + s + sweep)
 
 
 @wp.func
@@ -180,7 +210,7 @@ def analytic_near(
     moved = False
     p_in = p1
     if ccd != 0 and ob.kind != KIND_PLANE:
-        hit, h, nh = shape_ccd(ob.kind, ob.size, thickness, p0, p1)
+        hit, h, nh = shape_ccd(ob.kind, ob.size, thickness, p0, p1, slack * slack)
         if hit:
             p1 = p1 + wp.max(-wp.dot(p1 - h, nh), 0.0) * nh
             phi, n = shape_sdf(ob.kind, ob.size, p1)
@@ -200,7 +230,8 @@ def analytic_near(
 
 @wp.func
 def static_near(
-    rb: ObstacleReach,
+    reaches: wp.array(dtype=ObstacleReach),
+    k: int,
     i: int,
     x0: wp.vec3,
     x1: wp.vec3,
@@ -212,24 +243,25 @@ def static_near(
     respond_velocity: int,
     ccd: int,
 ):
-    """`analytic_near` for a static sphere or plane (``rb.fast``), in the world frame: the same
+    """`analytic_near` for a static sphere or plane (``reaches[k].fast``), in the world frame: the same
     tests and outcome with the transforms and the (zero) surface velocity left out. Sphere:
-    centre ``rb.origin``, radius ``rb.bound``; plane: point ``rb.origin``, normal ``rb.normal``.
+    centre ``origin``, radius ``bound``; plane: point ``origin``, normal ``normal`` (fields read
+    in place: a struct passed by value is copied at every call).
     Such a vertex arrives here only when within reach (`far_from` is exact for both)."""
     reach = thickness + slack
-    p1 = x1 - rb.origin
-    p0 = x0 - rb.origin
+    p1 = x1 - reaches[k].origin
+    p0 = x0 - reaches[k].origin
     phi = float(0.0)
-    n = rb.normal
-    size = wp.vec3(rb.bound, 0.0, 0.0)
-    if rb.fast == FAST_SPHERE:
+    n = reaches[k].normal
+    size = wp.vec3(reaches[k].bound, 0.0, 0.0)
+    if reaches[k].fast == FAST_SPHERE:
         phi, n = shape_sdf(KIND_SPHERE, size, p1)
     else:
         phi = wp.dot(p1, n)
     moved = False
     p_in = p1
-    if ccd != 0 and rb.fast == FAST_SPHERE:
-        hit, h, nh = shape_ccd(KIND_SPHERE, size, thickness, p0, p1)
+    if ccd != 0 and reaches[k].fast == FAST_SPHERE:
+        hit, h, nh = shape_ccd(KIND_SPHERE, size, thickness, p0, p1, slack * slack)
         if hit:
             p1 = p1 + wp.max(-wp.dot(p1 - h, nh), 0.0) * nh
             phi, n = shape_sdf(KIND_SPHERE, size, p1)
@@ -241,80 +273,128 @@ def static_near(
         vr = vi
         if respond_velocity != 0 and not touched:
             vr = v[i]
-        q, vo = outcome_in_frame(p0, p_in, p1, n, vr, wp.vec3(0.0), n, rb.restitution,
-                                 rb.friction, respond_velocity)
-        return q + rb.origin, vo, True
-    return x1, vi, touched
-
-
-@wp.func
-def analytic_vertex_near(
-    obstacles: wp.array(dtype=ObstacleData),
-    reaches: wp.array(dtype=ObstacleReach),
-    poses: wp.array(dtype=wp.transform),
-    pose_offset: int,
-    i: int,
-    x0: wp.vec3,
-    x1: wp.vec3,
-    v: wp.array(dtype=wp.vec3),
-    dt: float,
-    thickness: float,
-    slack: float,
-    respond_velocity: int,
-    ccd: int,
-):
-    """Contact of vertex ``i`` (path ``x0 -> x1``) with every analytic obstacle it is within
-    reach of (the far test again per obstacle: an earlier one may have moved the vertex).
-    Returns (end position, velocity, touched); ``v[i]`` is read only when touched."""
-    vi = wp.vec3(0.0)
-    touched = bool(False)
-    reach = thickness + slack
-    for k in range(reaches.shape[0]):
-        rb = reaches[k]
-        if far_from(rb, x0, x1, reach, thickness, ccd):
-            continue
-        if rb.fast != FAST_NONE:
-            x1, vi, touched = static_near(rb, i, x0, x1, v, vi, touched, thickness, slack,
-                                          respond_velocity, ccd)
-        else:
-            x1, vi, touched = analytic_near(obstacles[k], poses, 5 * (pose_offset + k), i, x0,
-                                            x1, v, vi, touched, dt, thickness, slack,
-                                            respond_velocity, ccd)
+        q, vo = outcome_in_frame(p0, p_in, p1, n, vr, wp.vec3(0.0), n, reaches[k].restitution,
+                                 reaches[k].friction, respond_velocity)
+        return q + reaches[k].origin, vo, True
     return x1, vi, touched
 
 
 _KERNELS = {}
 
 
-def analytic_far_kernel(num: int):
-    """The far pass for ``num`` analytic obstacles (a kernel per count, made on first use: a
-    loop of known length is unrolled, which measured 30 % cheaper than a loop over
-    ``reaches.shape[0]`` on the CPU)."""
-    return _kernels(num)[0]
+def analytic_far_kernel(kinds):
+    """The far pass for analytic obstacles with the given `far_kinds` (a kernel per tuple, made
+    on first use: a loop of known length is unrolled, which measured 30 % cheaper than a loop
+    over ``reaches.shape[0]`` on the CPU, and each obstacle keeps only its own test)."""
+    return _kernels(kinds)[0]
 
 
-def integrate_far_kernel(num: int):
-    """Symplectic Euler's vertex update with the far pass for ``num`` analytic obstacles in the
-    same thread (`ObstacleContact.integrate_and_apply`; a kernel per count, made on first use)."""
-    return _kernels(num)[1]
+def integrate_far_kernel(kinds):
+    """Symplectic Euler's vertex update with the far pass of `analytic_far_kernel` in the same
+    thread (`ObstacleContact.integrate_and_apply`)."""
+    return _kernels(kinds)[1]
 
 
-def _kernels(num: int):
-    kernels = _KERNELS.get(num)
+def analytic_near_kernel(kinds):
+    """The near pass (the listed vertices) for analytic obstacles with the given `far_kinds`."""
+    return _kernels(kinds)[2]
+
+
+#: `far_kinds` codes: what each obstacle's kernels compile in. GENERAL: moving (general far test,
+#: local-frame near path); BALL: static box (bounding-ball far test, local-frame near path);
+#: SPHERE / PLANE: static sphere / plane (exact squared far test, world-frame near path)
+FAR_GENERAL, FAR_BALL, FAR_SPHERE, FAR_PLANE = 0, 1, 2, 3
+
+
+def far_kinds(obstacles) -> tuple:
+    """Per analytic obstacle, its `far_kinds` code (which tests its kernels compile in)."""
+    from .motion import KIND_PLANE, KIND_SPHERE
+
+    return tuple(FAR_GENERAL if ob.moving else FAR_PLANE if ob.kind == KIND_PLANE
+                 else FAR_SPHERE if ob.kind == KIND_SPHERE else FAR_BALL for ob in obstacles)
+
+
+def _kernels(kinds):
+    kinds = tuple(int(k) for k in kinds)
+    kernels = _KERNELS.get(kinds)
     if kernels is None:
-        kernels = _KERNELS[num] = _make_far_kernels(num)
+        kernels = _KERNELS[kinds] = _make_far_kernels(kinds)
     return kernels
 
 
-def _make_far_kernels(num: int):
+def _make_far_kernels(kinds):
+    num = len(kinds)
+    # which test each obstacle needs, as constants of the generated code (the unrolled loop
+    # keeps one test per obstacle, without the branches on its kind and motion)
+    BALLS = wp.constant(sum(1 << k for k, c in enumerate(kinds) if c in (FAR_BALL, FAR_SPHERE)))
+    PLANES = wp.constant(sum(1 << k for k, c in enumerate(kinds) if c == FAR_PLANE))
+    FAST = wp.constant(sum(1 << k for k, c in enumerate(kinds) if c in (FAR_SPHERE, FAR_PLANE)))
+
+    @wp.func
+    def far_k(reaches: wp.array(dtype=ObstacleReach), k: int, x0: wp.vec3, x1: wp.vec3,
+              reach: float, thickness: float, ccd: int):
+        """`far_from` for obstacle ``k`` (a loop constant), with only the test its kind needs."""
+        if ((BALLS >> k) & 1) != 0:
+            return static_ball_far(reaches, k, x0, x1, reach, thickness, ccd)
+        if ((PLANES >> k) & 1) != 0:
+            return static_plane_far(reaches, k, x0, x1, reach, thickness, ccd)
+        return far_from(reaches, k, x0, x1, reach, thickness, ccd)
+
     @wp.func
     def first_near(reaches: wp.array(dtype=ObstacleReach), first: int, x0: wp.vec3,
                    x1: wp.vec3, reach: float, thickness: float, ccd: int):
         """The first obstacle from ``first`` on whose far test the path fails, or -1."""
         for k in range(num):
-            if k >= first and not far_from(reaches[k], x0, x1, reach, thickness, ccd):
+            if k >= first and not far_k(reaches, k, x0, x1, reach, thickness, ccd):
                 return k
         return -1
+
+    @wp.kernel(module="unique")
+    def near_kernel(
+        obstacles: wp.array(dtype=ObstacleData),
+        reaches: wp.array(dtype=ObstacleReach),
+        poses: wp.array(dtype=wp.transform),
+        pose_offset: int,
+        x: wp.array(dtype=wp.vec3),
+        x_start: wp.array(dtype=wp.vec3),
+        v: wp.array(dtype=wp.vec3),
+        dt: float,
+        thickness: float,
+        slack: float,
+        respond_velocity: int,
+        ccd: int,
+        near_count: wp.array(dtype=int),
+        near_list: wp.array(dtype=int),
+        num_threads: int,
+    ):
+        """Pass 2, the listed vertices (strided over the threads): each obstacle the vertex is
+        within reach of (the far test again from the second obstacle on: an earlier one may
+        have moved the vertex; a single obstacle's was the test that listed it), static spheres
+        and planes in the world frame (`static_near`), the rest in their frames
+        (`analytic_near`). ``v[i]`` is read only when touched."""
+        t = wp.tid()
+        n = near_count[0]
+        reach = thickness + slack
+        for e in range(t, n, num_threads):
+            i = near_list[e]
+            x0 = x_start[i]
+            x1 = x[i]
+            vi = wp.vec3(0.0)
+            touched = bool(False)
+            for k in range(num):
+                if num == 1 or not far_k(reaches, k, x0, x1, reach, thickness, ccd):
+                    if ((FAST >> k) & 1) != 0:
+                        x1, vi, touched = static_near(reaches, k, i, x0, x1, v, vi, touched,
+                                                      thickness, slack, respond_velocity, ccd)
+                    else:
+                        x1, vi, touched = analytic_near(obstacles[k], poses,
+                                                        5 * (pose_offset + k), i, x0, x1, v, vi,
+                                                        touched, dt, thickness, slack,
+                                                        respond_velocity, ccd)
+            if touched:
+                x[i] = x1
+                if respond_velocity != 0:
+                    v[i] = vi
 
     @wp.kernel(module="unique")
     def far_kernel(
@@ -386,39 +466,7 @@ def _make_far_kernels(num: int):
             x_start[i] = x0
             near_list[wp.atomic_add(near_count, 0, 1)] = i
 
-    return far_kernel, integrate_far
-
-
-@wp.kernel
-def analytic_near_kernel(
-    obstacles: wp.array(dtype=ObstacleData),
-    reaches: wp.array(dtype=ObstacleReach),
-    poses: wp.array(dtype=wp.transform),
-    pose_offset: int,
-    x: wp.array(dtype=wp.vec3),
-    x_start: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    dt: float,
-    thickness: float,
-    slack: float,
-    respond_velocity: int,
-    ccd: int,
-    near_count: wp.array(dtype=int),
-    near_list: wp.array(dtype=int),
-    num_threads: int,
-):
-    """Pass 2: `analytic_vertex_near` for the listed vertices, strided over the threads."""
-    t = wp.tid()
-    n = near_count[0]
-    for e in range(t, n, num_threads):
-        i = near_list[e]
-        x1, vi, touched = analytic_vertex_near(obstacles, reaches, poses, pose_offset, i,
-                                               x_start[i], x[i], v, dt, thickness, slack,
-                                               respond_velocity, ccd)
-        if touched:
-            x[i] = x1
-            if respond_velocity != 0:
-                v[i] = vi
+    return far_kernel, integrate_far, near_kernel
 
 
 @wp.kernel
@@ -455,7 +503,7 @@ def analytic_planes_kernel(
                 if rb.fast == FAST_SPHERE:
                     size = wp.vec3(rb.bound, 0.0, 0.0)
                     if ccd != 0:
-                        hit, h, nh = shape_ccd(KIND_SPHERE, size, thickness, x0 - rb.origin, p1)
+                        hit, h, nh = shape_ccd(KIND_SPHERE, size, thickness, x0 - rb.origin, p1, 0.0)
                         if hit:
                             p1 = p1 + wp.max(-wp.dot(p1 - h, nh), 0.0) * nh
                     phi, n = shape_sdf(KIND_SPHERE, size, p1)
@@ -469,7 +517,7 @@ def analytic_planes_kernel(
             p1 = wp.transform_point(poses[j + 3], x1)
             p0 = wp.transform_point(poses[j + 2], x0)
             if ccd != 0 and ob.kind != KIND_PLANE:
-                hit, h, nh = shape_ccd(ob.kind, ob.size, thickness, p0, p1)
+                hit, h, nh = shape_ccd(ob.kind, ob.size, thickness, p0, p1, 0.0)
                 if hit:
                     p1 = p1 + wp.max(-wp.dot(p1 - h, nh), 0.0) * nh
             phi, n = shape_sdf(ob.kind, ob.size, p1)

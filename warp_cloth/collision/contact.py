@@ -236,6 +236,9 @@ class ObstacleContact:
         self._lists = None  # (x, x_start, dt) of the lists `begin_iterations` made
         self._a_planes = self._m_planes = None  # made on the first begin_iterations
         if self.analytic:
+            from .analytic import far_kinds
+
+            self._far_kinds = far_kinds(self.analytic)
             self._a_count = wp.zeros(1, dtype=int, device=d)
             self._a_list = wp.zeros(n_v, dtype=int, device=d)
             self._ai_count = wp.zeros(1, dtype=int, device=d)  # for the iterations
@@ -310,7 +313,7 @@ class ObstacleContact:
             from .analytic import integrate_far_kernel
 
             self._a_count.zero_()
-            wp.launch(integrate_far_kernel(len(self.analytic)), m.num_vertices,
+            wp.launch(integrate_far_kernel(self._far_kinds), m.num_vertices,
                       [*head, self._analytic_reach, self.thickness, self.slack, int(self.ccd),
                        self._a_count, self._a_list], device=self.device)
         else:
@@ -405,7 +408,7 @@ class ObstacleContact:
             self._a_count.zero_()
             if margin > 0.0:
                 self._ai_count.zero_()
-            wp.launch(analytic_far_kernel(len(self.analytic)), m.num_vertices,
+            wp.launch(analytic_far_kernel(self._far_kinds), m.num_vertices,
                       [self._analytic_reach, x, x_start, m.inv_mass, th, sl, ccd, self._a_count,
                        self._a_list, margin, self._ai_count, self._ai_list], device=self.device)
         if self._mesh_data is not None:
@@ -425,7 +428,7 @@ class ObstacleContact:
         if self._analytic_data is not None:
             from .analytic import analytic_near_kernel
 
-            wp.launch(analytic_near_kernel, self._near_threads,
+            wp.launch(analytic_near_kernel(self._far_kinds), self._near_threads,
                       [self._analytic_data, self._analytic_reach, self.poses, 0, x, x_start, v,
                        dt, th, sl, respond, ccd, self._a_count, self._a_list,
                        self._near_threads], device=self.device)

@@ -559,8 +559,7 @@ def _make_far_kernels(moving):
         mask = int(0)
         for k in range(num):
             ci = i * num + k
-            rb = reaches[k]
-            origin = rb.origin
+            origin = reaches[k].origin  # fields read in place (no struct copy)
             if ((MOVING >> k) & 1) == 0:
                 # static mesh: no surface within gap of the anchor, so a path whose both ends
                 # lie within gap - reach of it (a ball is convex: so does the whole path) stays
@@ -573,7 +572,7 @@ def _make_far_kernels(moving):
                         continue
                 # far test in the world frame: outside the bounding ball by more than the
                 # reach and than the path length; the end becomes the vertex's new anchor
-                lb = wp.length(x1 - origin) - rb.bound - reach
+                lb = wp.length(x1 - origin) - reaches[k].bound - reach
                 if lb > 0.0 and (ccd == 0 or lb * lb >= wp.length_sq(x1 - x0)):
                     if caching:
                         cache.gap[ci] = lb + reach
@@ -583,14 +582,14 @@ def _make_far_kernels(moving):
                 # moving mesh: the length of the vertex's path in the mesh's frame is at most
                 # `path` (ObstacleReach)
                 s = wp.length(x1 - x0)
-                sweep = rb.sweep
-                path = s + sweep + rb.turn * (wp.length(x1 - origin) + s + sweep)
-                if valid and rb.fresh != 0:
+                sweep = reaches[k].sweep
+                path = s + sweep + reaches[k].turn * (wp.length(x1 - origin) + s + sweep)
+                if valid and reaches[k].fresh != 0:
                     g = cache.gap[ci] - path  # a lower bound of the distance along the path
                     if g > reach:
                         cache.gap[ci] = g
                         continue
-                lb = wp.length(x1 - origin) - rb.bound - reach
+                lb = wp.length(x1 - origin) - reaches[k].bound - reach
                 if lb > 0.0 and (ccd == 0 or lb >= path):
                     if caching:
                         cache.gap[ci] = lb + reach
