@@ -656,3 +656,35 @@ def test_candidate_plane_only_where_no_other_face_is_in_front(wall, qx):
     assert np.abs(cached.numpy() - exact.numpy()).max() < 1e-6
     if wall:
         assert exact.numpy()[-2] == pytest.approx(0.0215, abs=1e-6)  # nearer the wall
+
+
+@pytest.mark.parametrize("spin", [0.0, 3.0])
+def test_explicit_fused_contact_matches_separate_pass_in_a_crease(spin):
+    """Particles pulled into the crease where a plane cuts a sphere touch both in the same step:
+    the fused pass (static obstacles: the whole contact inside the vertex update) treats the
+    second obstacle after the first, exactly as the separate pass does."""
+    rng = np.random.default_rng(5)
+    z = rng.uniform(-0.05, 0.05, 40)
+    # the plane y = 0.15 cuts the sphere (radius 0.2 at the origin) along a circle of radius 0.132
+    pos = np.stack([np.sqrt(0.134 ** 2 - z ** 2) + rng.uniform(0.0, 0.01, 40),
+                    0.16 + rng.uniform(0.0, 0.01, 40), z], axis=1)
+
+    def run(fuse):
+        model, st = particles(pos)
+        model.gravity = (-5.0, -10.0, 0.0)  # into the crease
+        obs = [Sphere(0.2, (0.0, 0.0, 0.0), motion=Motion(angular_velocity=(0.0, spin, 0.0))),
+               Plane((0.0, 1.0, 0.0), (0.0, 0.15, 0.0))]
+        contact = ObstacleContact(model, obs, friction=0.3, fuse=fuse)
+        solver = make_solver("explicit", model)
+        solver.add_correction(contact)
+        both = 0
+        for _ in range(100):
+            solver.step(st, 1e-3)
+            phi = contact.signed_distances(st.positions()[:40], st.t)
+            both = max(both, int((phi < contact.thickness + contact.slack).all(axis=0).sum()))
+        return st.positions(), st.velocities(), both
+
+    x_f, v_f, both = run(True)
+    x_s, v_s, _ = run(False)
+    assert both >= 10
+    assert np.array_equal(x_f, x_s) and np.array_equal(v_f, v_s)

@@ -295,6 +295,14 @@ def integrate_far_kernel(kinds):
     return _kernels(kinds)[1]
 
 
+def integrate_contact_kernel(kinds):
+    """Symplectic Euler's vertex update with the whole contact in the same thread, for static
+    spheres and planes only (`FAR_SPHERE`, `FAR_PLANE`)."""
+    if any(k not in (FAR_SPHERE, FAR_PLANE) for k in kinds):
+        raise ValueError("integrate_contact_kernel is for static spheres and planes only")
+    return _kernels(kinds)[3]
+
+
 def analytic_near_kernel(kinds):
     """The near pass (the listed vertices) for analytic obstacles with the given `far_kinds`."""
     return _kernels(kinds)[2]
@@ -466,7 +474,47 @@ def _make_far_kernels(kinds):
             x_start[i] = x0
             near_list[wp.atomic_add(near_count, 0, 1)] = i
 
-    return far_kernel, integrate_far, near_kernel
+    @wp.kernel(module="unique")
+    def integrate_contact(
+        x: wp.array(dtype=wp.vec3),
+        v: wp.array(dtype=wp.vec3),
+        f: wp.array(dtype=wp.vec3),
+        inv_mass: wp.array(dtype=float),
+        gravity: wp.vec3,
+        decay: float,
+        dt: float,
+        reaches: wp.array(dtype=ObstacleReach),
+        thickness: float,
+        slack: float,
+        ccd: int,
+    ):
+        """For static spheres and planes only: `integrate_symplectic_kernel` and the whole
+        contact (far tests, then `static_near` from the first obstacle within reach) in one
+        thread: no list, no second pass. The same result as `integrate_far` and `near_kernel`
+        (their world-frame path has few variables, so far vertices do not pay for it)."""
+        i = wp.tid()
+        w = inv_mass[i]
+        fi = f[i]
+        f[i] = wp.vec3(0.0)  # cleared for the next step's forces
+        if w == 0.0:
+            return
+        x0 = x[i]
+        vi = symplectic_velocity(v[i], fi, w, gravity, decay, dt)
+        x1 = x0 + dt * vi
+        v[i] = vi
+        reach = thickness + slack
+        first = first_near(reaches, 0, x0, x1, reach, thickness, ccd)
+        if first >= 0:
+            touched = bool(True)  # v[i] holds vi: static_near reads it from vi
+            for k in range(num):
+                if k == first or (k > first and not far_k(reaches, k, x0, x1, reach, thickness,
+                                                          ccd)):
+                    x1, vi, touched = static_near(reaches, k, i, x0, x1, v, vi, touched,
+                                                  thickness, slack, 1, ccd)
+            v[i] = vi
+        x[i] = x1
+
+    return far_kernel, integrate_far, near_kernel, integrate_contact
 
 
 @wp.kernel

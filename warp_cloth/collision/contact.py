@@ -286,6 +286,13 @@ class ObstacleContact:
         self._near(state.x, x_start, state.v, dt, 1)
 
     @property
+    def _all_fast(self) -> bool:
+        """Only static spheres and planes (analytic): `integrate_and_apply` is one pass."""
+        from .analytic import FAR_PLANE, FAR_SPHERE
+
+        return bool(self.analytic) and all(k in (FAR_SPHERE, FAR_PLANE) for k in self._far_kinds)
+
+    @property
     def fusable(self) -> bool:
         """True when `integrate_and_apply` can run this contact: ``fuse`` and obstacles of one
         family, analytic or mesh (a solver that `fuses_contact` then calls it instead of
@@ -309,6 +316,14 @@ class ObstacleContact:
         self._lists = None
         self._poses(state.time, dt, 1)
         head = [state.x, state.v, f, m.inv_mass, gravity, float(decay), dt, x_start]
+        if self.analytic and self._all_fast:
+            from .analytic import integrate_contact_kernel
+
+            # static spheres and planes: the whole contact inside the vertex update
+            wp.launch(integrate_contact_kernel(self._far_kinds), m.num_vertices,
+                      [*head[:7], self._analytic_reach, self.thickness, self.slack,
+                       int(self.ccd)], device=self.device)
+            return
         if self.analytic:
             from .analytic import integrate_far_kernel
 
