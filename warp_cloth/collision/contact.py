@@ -255,6 +255,9 @@ class ObstacleContact:
             self._m_count = wp.zeros(1, dtype=int, device=d)
             self._m_list = wp.zeros(n_v, dtype=int, device=d)
             self._m_mask = wp.zeros(n_v, dtype=int, device=d)
+            self._g_count = wp.zeros(1, dtype=int, device=d)  # what the near pass leaves
+            self._g_list = wp.zeros(n_v, dtype=int, device=d)
+            self._g_mask = wp.zeros(n_v, dtype=int, device=d)
 
             n_e = n_v * len(self.meshes)
             self._gap = wp.zeros(n_e, dtype=float, device=d)
@@ -448,12 +451,18 @@ class ObstacleContact:
                        dt, th, sl, respond, ccd, self._a_count, self._a_list,
                        self._near_threads], device=self.device)
         if self._mesh_data is not None:
-            from .mesh_contact import mesh_near_kernel
+            from .mesh_contact import mesh_general_kernel, mesh_near_kernel
 
-            wp.launch(mesh_near_kernel, self._near_threads,
+            nt = self._near_threads
+            self._g_count.zero_()
+            wp.launch(mesh_near_kernel, nt,
+                      [self._mesh_data, x, x_start, v, th, sl, respond, self._cache,
+                       self._m_count, self._m_list, self._m_mask, nt, self._g_count,
+                       self._g_list, self._g_mask], device=self.device)
+            wp.launch(mesh_general_kernel, nt,
                       [self._mesh_data, self._mesh_ids, self.poses, len(self.analytic), x,
-                       x_start, v, dt, th, sl, respond, ccd, self._cache, self._m_count,
-                       self._m_list, self._m_mask, self._near_threads], device=self.device)
+                       x_start, v, dt, th, sl, respond, ccd, self._cache, self._g_count,
+                       self._g_list, self._g_mask, nt], device=self.device)
 
     # ------------------------------------------------------------------ reports (host side)
     def signed_distances(self, positions, t: float) -> np.ndarray:

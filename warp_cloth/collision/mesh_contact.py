@@ -317,7 +317,8 @@ def refresh_candidates(mid: wp.uint64, closed: int, r: float, ci: int, q: wp.vec
 
 @wp.func(inline=True)
 def static_cached_near(
-    ob: ObstacleData,
+    restitution: float,
+    friction: float,
     ci: int,
     i: int,
     x0: wp.vec3,
@@ -333,7 +334,8 @@ def static_cached_near(
 ):
     """`mesh_near` for a static mesh whose candidate ball holds the vertex's whole path (most
     vertices resting on a static mesh, most steps): the candidates are kept in the world frame,
-    so no transforms, and the surface does not move. Returns (x1, vi, touched) updated."""
+    so no transforms, and the surface does not move. Returns (x1, vi, touched) updated. The
+    mesh's coefficients come as numbers: a struct passed by value is copied at every call."""
     c, phi, n = cached_closest(cache, ci, x1)
     moved = phi < thickness
     p = x1
@@ -345,7 +347,7 @@ def static_cached_near(
         vr = vi
         if respond_velocity != 0 and not touched:
             vr = v[i]
-        xo, vo = outcome_in_frame(x0, x1, p, n, vr, wp.vec3(0.0), n, ob.restitution, ob.friction,
+        xo, vo = outcome_in_frame(x0, x1, p, n, vr, wp.vec3(0.0), n, restitution, friction,
                                   respond_velocity)
         return xo, vo, True
     return x1, vi, touched
@@ -485,7 +487,8 @@ def mesh_vertex_near(
     cache: MeshCache,
 ):
     """`mesh_near` for each mesh in ``mask`` (bit k: mesh k passed no far test; meshes from
-    the 31st on are always tried), then the vertex's writes."""
+    the 31st on are always tried; `static_cached_near` where it applies), then the vertex's
+    writes."""
     vi = wp.vec3(0.0)
     touched = bool(False)
     num = obstacles.shape[0]
@@ -497,8 +500,9 @@ def mesh_vertex_near(
             q = cache.cand_q[ci]
             r2 = cache.cand_r2[ci]
             if wp.length_sq(x1 - q) <= r2 and wp.length_sq(x0 - q) <= r2:
-                x1, vi, touched = static_cached_near(obstacles[k], ci, i, x0, x1, v, vi, touched,
-                                                     thickness, thickness + slack,
+                x1, vi, touched = static_cached_near(obstacles[k].restitution,
+                                                     obstacles[k].friction, ci, i, x0, x1, v, vi,
+                                                     touched, thickness, thickness + slack,
                                                      respond_velocity, caching, cache)
                 continue
         x1, vi, touched = mesh_near(obstacles, mesh_ids, poses, k, 5 * (pose_offset + k),
@@ -508,12 +512,11 @@ def mesh_vertex_near(
         x[i] = x1
         if respond_velocity != 0:
             v[i] = vi
-    if caching:
+    if caching and touched:
         # a vertex this kernel moved may have moved towards another mesh by more than its path
-        # length: no cache for it next step (NaN never compares equal)
-        cache.last[i] = x1
-        if touched:
-            cache.last[i] = wp.vec3(wp.nan)
+        # length: no cache for it next step (NaN never compares equal; `mesh_near_kernel`
+        # recorded where it ended otherwise)
+        cache.last[i] = wp.vec3(wp.nan)
 
 
 _KERNELS = {}
@@ -682,6 +685,72 @@ def _make_far_kernels(moving):
 @wp.kernel
 def mesh_near_kernel(
     obstacles: wp.array(dtype=ObstacleData),
+    x: wp.array(dtype=wp.vec3),
+    x_start: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    thickness: float,
+    slack: float,
+    respond_velocity: int,
+    cache: MeshCache,
+    near_count: wp.array(dtype=int),
+    near_list: wp.array(dtype=int),
+    near_mask: wp.array(dtype=int),
+    num_threads: int,
+    general_count: wp.array(dtype=int),
+    general_list: wp.array(dtype=int),
+    general_mask: wp.array(dtype=int),
+):
+    """Pass 2: the listed vertices, strided over ``ceil(N / NEAR_BATCH)`` threads (the list's
+    length is known only on the device; a thread costs its set-up whether it has work or not,
+    so fewer threads than vertices). Each of the vertex's meshes in order while its path lies in
+    the mesh's static candidate ball (`static_cached_near`: most vertices resting on a static
+    mesh); the first mesh that needs more, and the ones after it, go to a third list for
+    `mesh_general_kernel` (kept apart: measured, the mere call of the general path in this loop
+    cost the common case a fifth more)."""
+    t = wp.tid()
+    n = near_count[0]
+    num = obstacles.shape[0]
+    caching = respond_velocity != 0
+    reach = thickness + slack
+    for e in range(t, n, num_threads):
+        i = near_list[e]
+        left = near_mask[e]
+        x0 = x_start[i]
+        x1 = x[i]
+        vi = wp.vec3(0.0)
+        touched = bool(False)
+        for k in range(wp.min(num, 31)):
+            bit = 1 << k
+            if (left & bit) != 0:
+                ci = i * num + k
+                if obstacles[k].moving != 0 or cache.cand_count[ci] == 0:
+                    break
+                q = cache.cand_q[ci]
+                r2 = cache.cand_r2[ci]
+                if wp.length_sq(x1 - q) > r2 or wp.length_sq(x0 - q) > r2:
+                    break
+                x1, vi, touched = static_cached_near(obstacles[k].restitution,
+                                                     obstacles[k].friction, ci, i, x0, x1, v, vi,
+                                                     touched, thickness, reach, respond_velocity,
+                                                     caching, cache)
+                left = left & ~bit
+        if touched:
+            x[i] = x1
+            if respond_velocity != 0:
+                v[i] = vi
+        if caching:
+            # a vertex this pass moved may have moved towards another mesh by more than its
+            # path length: no distance cache for it next step (NaN never compares equal)
+            cache.last[i] = wp.where(touched, wp.vec3(wp.nan), x1)
+        if left != 0:
+            slot = wp.atomic_add(general_count, 0, 1)
+            general_list[slot] = i
+            general_mask[slot] = left
+
+
+@wp.kernel
+def mesh_general_kernel(
+    obstacles: wp.array(dtype=ObstacleData),
     mesh_ids: wp.array(dtype=wp.uint64),
     poses: wp.array(dtype=wp.transform),
     pose_offset: int,
@@ -694,20 +763,19 @@ def mesh_near_kernel(
     respond_velocity: int,
     ccd: int,
     cache: MeshCache,
-    near_count: wp.array(dtype=int),
-    near_list: wp.array(dtype=int),
-    near_mask: wp.array(dtype=int),
+    general_count: wp.array(dtype=int),
+    general_list: wp.array(dtype=int),
+    general_mask: wp.array(dtype=int),
     num_threads: int,
 ):
-    """Pass 2: the listed vertices, strided over ``ceil(N / NEAR_BATCH)`` threads (the list's
-    length is known only on the device; a thread costs its set-up whether it has work or not,
-    so fewer threads than vertices)."""
+    """Pass 3: the vertices `mesh_near_kernel` left, with the meshes it left (`mesh_vertex_near`:
+    BVH queries, moving meshes, candidate refreshes), in order."""
     t = wp.tid()
-    n = near_count[0]
+    n = general_count[0]
     for e in range(t, n, num_threads):
-        i = near_list[e]
-        mesh_vertex_near(obstacles, mesh_ids, poses, pose_offset, near_mask[e], i, x_start[i],
-                         x[i], x, v, dt, thickness, slack, respond_velocity, ccd,
+        i = general_list[e]
+        mesh_vertex_near(obstacles, mesh_ids, poses, pose_offset, general_mask[e], i,
+                         x_start[i], x[i], x, v, dt, thickness, slack, respond_velocity, ccd,
                          respond_velocity != 0, cache)
 
 
