@@ -340,7 +340,8 @@ class ObstacleContact:
             self._m_count.zero_()
             wp.launch(integrate_mesh_far_kernel(self._mesh_moving), m.num_vertices,
                       [*head, self._mesh_reach, self.thickness, self.slack, int(self.ccd),
-                       self._cache, self._m_count, self._m_list, self._m_mask],
+                       self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
+                       self._m_mask],
                       device=self.device)
         self._near(state.x, x_start, state.v, dt, 1)
 
@@ -437,7 +438,8 @@ class ObstacleContact:
             self._m_count.zero_()
             wp.launch(mesh_far_kernel(self._mesh_moving), m.num_vertices,
                       [self._mesh_reach, x, x_start, m.inv_mass, th, sl, respond, ccd, 0.0,
-                       self._cache, self._m_count, self._m_list, self._m_mask],
+                       self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
+                       self._m_mask],
                       device=self.device)
 
     def _near(self, x, x_start, v, dt, respond):

@@ -552,13 +552,14 @@ def _make_far_kernels(moving):
 
     @wp.func
     def far_mask(reaches: wp.array(dtype=ObstacleReach), i: int, x0: wp.vec3, x1: wp.vec3,
-                 reach: float, ccd: int, caching: bool, cache: MeshCache):
+                 reach: float, ccd: int, caching: bool, gap: wp.array(dtype=float),
+                 anchor: wp.array(dtype=wp.vec3), last: wp.array(dtype=wp.vec3)):
         """The far tests of vertex ``i`` against the ``num`` meshes (distance cache, then
         bounding ball; the cache is kept with ``caching`` only). Returns the mask of the meshes
         it passed none of (bit k: mesh k; meshes from the 31st on always)."""
         valid = bool(False)
         if ANY_MOVING != 0:
-            valid = caching and cache.last[i] == x0
+            valid = caching and last[i] == x0
         mask = int(0)
         for k in range(num):
             ci = i * num + k
@@ -567,9 +568,9 @@ def _make_far_kernels(moving):
                 # static mesh: no surface within gap of the anchor, so a path whose both ends
                 # lie within gap - reach of it (a ball is convex: so does the whole path) stays
                 # out of reach. Squared lengths only, nothing written: most vertices, most steps
-                h = cache.gap[ci] - reach
+                h = gap[ci] - reach
                 if h > 0.0:
-                    a = cache.anchor[ci]
+                    a = anchor[ci]
                     h2 = h * h
                     if wp.length_sq(x1 - a) < h2 and wp.length_sq(x0 - a) < h2:
                         continue
@@ -578,8 +579,8 @@ def _make_far_kernels(moving):
                 lb = wp.length(x1 - origin) - reaches[k].bound - reach
                 if lb > 0.0 and (ccd == 0 or lb * lb >= wp.length_sq(x1 - x0)):
                     if caching:
-                        cache.gap[ci] = lb + reach
-                        cache.anchor[ci] = x1
+                        gap[ci] = lb + reach
+                        anchor[ci] = x1
                     continue
             else:
                 # moving mesh: the length of the vertex's path in the mesh's frame is at most
@@ -588,14 +589,14 @@ def _make_far_kernels(moving):
                 sweep = reaches[k].sweep
                 path = s + sweep + reaches[k].turn * (wp.length(x1 - origin) + s + sweep)
                 if valid and reaches[k].fresh != 0:
-                    g = cache.gap[ci] - path  # a lower bound of the distance along the path
+                    g = gap[ci] - path  # a lower bound of the distance along the path
                     if g > reach:
-                        cache.gap[ci] = g
+                        gap[ci] = g
                         continue
                 lb = wp.length(x1 - origin) - reaches[k].bound - reach
                 if lb > 0.0 and (ccd == 0 or lb >= path):
                     if caching:
-                        cache.gap[ci] = lb + reach
+                        gap[ci] = lb + reach
                     continue
             mask = mask | (1 << wp.min(k, 31))
         return mask
@@ -611,7 +612,9 @@ def _make_far_kernels(moving):
         respond_velocity: int,
         ccd: int,
         margin: float,
-        cache: MeshCache,
+        gap: wp.array(dtype=float),
+        anchor: wp.array(dtype=wp.vec3),
+        last: wp.array(dtype=wp.vec3),
         near_count: wp.array(dtype=int),
         near_list: wp.array(dtype=int),
         near_mask: wp.array(dtype=int),
@@ -629,13 +632,13 @@ def _make_far_kernels(moving):
         x1 = x[i]
         caching = respond_velocity != 0
         mask = far_mask(reaches, i, x_start[i], x1, thickness + slack + margin, ccd, caching,
-                        cache)
+                        gap, anchor, last)
         if mask != 0:
             slot = wp.atomic_add(near_count, 0, 1)
             near_list[slot] = i
             near_mask[slot] = mask
         elif caching and ANY_MOVING != 0:
-            cache.last[i] = x1
+            last[i] = x1
 
     @wp.kernel(module="unique")
     def integrate_far(
@@ -651,7 +654,9 @@ def _make_far_kernels(moving):
         thickness: float,
         slack: float,
         ccd: int,
-        cache: MeshCache,
+        gap: wp.array(dtype=float),
+        anchor: wp.array(dtype=wp.vec3),
+        last: wp.array(dtype=wp.vec3),
         near_count: wp.array(dtype=int),
         near_list: wp.array(dtype=int),
         near_mask: wp.array(dtype=int),
@@ -670,14 +675,14 @@ def _make_far_kernels(moving):
         x1 = x0 + dt * vi
         v[i] = vi
         x[i] = x1
-        mask = far_mask(reaches, i, x0, x1, thickness + slack, ccd, True, cache)
+        mask = far_mask(reaches, i, x0, x1, thickness + slack, ccd, True, gap, anchor, last)
         if mask != 0:
             x_start[i] = x0
             slot = wp.atomic_add(near_count, 0, 1)
             near_list[slot] = i
             near_mask[slot] = mask
         elif ANY_MOVING != 0:
-            cache.last[i] = x1
+            last[i] = x1
 
     return far_kernel, integrate_far
 
