@@ -165,6 +165,17 @@ def far_from(reaches: wp.array(dtype=ObstacleReach), k: int, x0: wp.vec3, x1: wp
             return static_plane_far(reaches, k, x0, x1, reach, thickness, ccd)
         return static_ball_far(reaches, k, x0, x1, reach, thickness, ccd)
     r = x1 - reaches[k].origin
+    shrink = reaches[k].shrink
+    if reaches[k].plane == 0 and ccd != 0 and shrink > 0.0:
+        # moving ball, short path (s <= slack): the test below holds when |r| (1 - turn) >=
+        # bound + thickness + (slack + sweep) (1 + turn) (which also gives |r| - bound >=
+        # reach); squared lengths (shrink = 1 / (1 - turn), from the pose launch) instead of two
+        # square roots
+        sl = reach - thickness
+        if wp.length_sq(x1 - x0) <= sl * sl:
+            rr = (reaches[k].bound + thickness + (sl + sweep) * (1.0 + turn)) * shrink
+            if wp.length_sq(r) >= rr * rr:
+                return True
     lb = float(0.0)
     if reaches[k].plane != 0:
         lb = wp.dot(r, reaches[k].normal)

@@ -219,6 +219,7 @@ class ObstacleContact:
             r.plane = int(ob.kind == KIND_PLANE)
             r.sweep = 0.0
             r.turn = 0.0
+            r.shrink = 1.0
             r.fresh = 1
             r.fast = FAST_NONE
             if not ob.moving:

@@ -320,6 +320,7 @@ class ObstacleReach:
     plane: int  # 1: half-space test along ``normal``
     sweep: float  # |c(t1) - c(t0)|, m (0 for a static obstacle)
     turn: float  # 2 sin(theta / 2), theta the rotation over the step (0 for a static obstacle)
+    shrink: float  # 1 / (1 - turn) when turn < 1/2 (the far test's squared shortcut), else 0
     fresh: int  # 0: this step does not start where the last apply ended (moving-mesh cache)
     fast: int  # FAST_SPHERE / FAST_PLANE: a static sphere (origin, bound = radius) or plane
     #            (origin, normal) handled in the world frame; 0: the general local-frame path
@@ -344,12 +345,16 @@ def step_reach(T0: wp.transform, T1: wp.transform, bound: float, kind: int, movi
     r.restitution = restitution
     r.sweep = 0.0
     r.turn = 0.0
+    r.shrink = 1.0
     r.fresh = fresh
     r.fast = FAST_NONE
     if moving != 0:
         r.sweep = wp.length(r.origin - wp.transform_get_translation(T0)) * 1.00001 + 1.0e-7
         qr = wp.mul(wp.transform_get_rotation(T1), wp.quat_inverse(wp.transform_get_rotation(T0)))
         r.turn = 2.0 * wp.length(wp.vec3(qr[0], qr[1], qr[2])) * 1.00001 + 1.0e-7
+        r.shrink = 0.0
+        if r.turn < 0.5:
+            r.shrink = 1.0 / (1.0 - r.turn) * 1.00001
     else:
         r.fresh = 1  # a static obstacle's cache never goes stale
         if kind == KIND_SPHERE:
