@@ -621,13 +621,17 @@ def _candidates_vs_bvh_kernel(mid: wp.uint64, q: wp.vec3, r: float, cache: mesh_
             exact[j] = phi2
 
 
-@pytest.mark.parametrize("wall, qx", [(False, 0.025), (True, 0.025), (False, 0.998)])
-def test_candidate_plane_only_where_no_other_face_is_in_front(wall, qx):
+@pytest.mark.parametrize("wall, qx, expect", [(False, 0.025, "plane"), (True, 0.025, "faces"),
+                                               (False, 0.998, "small plane"),
+                                               (False, 0.9995, "faces")])
+def test_candidate_plane_only_where_no_other_face_is_in_front(wall, qx, expect):
     """A ball over a floor near a concave corner: with a wall within reach of the ball (in front
     of the floor's plane) the floor's plane alone would be wrong (points nearer the wall), so the
-    entry keeps the faces; without the wall it keeps one plane, unless the ball reaches past the
-    floor's border (qx = 0.998: beyond it the closest point is on the border, not the plane).
-    Either way the cached closest distance equals the BVH's at points across the ball."""
+    entry keeps the faces; without the wall it keeps one plane, with the full radius away from
+    the floor's border, with a quarter of it where only that smaller ball stays over the floor
+    (qx = 0.998; beyond the border the closest point is on it, not on the plane), and not at all
+    closer still (qx = 0.9995). Either way the cached closest distance equals the BVH's at
+    points across the entry's ball."""
     v = [[0, 0, -1], [1, 0, -1], [1, 0, 1], [0, 0, 1]]
     t = [[0, 2, 1], [0, 3, 2]]
     if wall:
@@ -644,16 +648,21 @@ def test_candidate_plane_only_where_no_other_face_is_in_front(wall, qx):
     cache.cand_tris = wp.zeros(3 * n_e * mesh_contact.MAX_CANDIDATES, dtype=wp.vec3)
     q, r = np.array([qx, 0.02, 0.0]), 0.005
     rng = np.random.default_rng(3)
-    d = rng.normal(size=(200, 3))
-    pts = q + r * 0.999 * d / np.linalg.norm(d, axis=1)[:, None] * rng.random((200, 1)) ** (1 / 3)
+    d = rng.normal(size=(400, 3))
+    scale = np.repeat([r, 0.25 * r], 200)[:, None] * 0.999
+    pts = q + scale * d / np.linalg.norm(d, axis=1)[:, None] * rng.random((400, 1)) ** (1 / 3)
     pts = np.vstack([pts, [[qx - 0.0035, 0.0225, 0.0], [qx + 0.0035, 0.0225, 0.0]]])
     cached, exact = wp.zeros(len(pts), dtype=float), wp.zeros(len(pts), dtype=float)
     wp.launch(_candidates_vs_bvh_kernel, 1, [mesh.id, wp.vec3(*q), r, cache,
                                              wp.array(pts.astype(np.float32), dtype=wp.vec3),
                                              cached, exact])
     count = int(cache.cand_count.numpy()[0])
-    assert (count == mesh_contact.PLANE) == (not wall and qx < 0.5)
-    assert np.abs(cached.numpy() - exact.numpy()).max() < 1e-6
+    r2 = float(cache.cand_r2.numpy()[0])
+    assert (count == mesh_contact.PLANE) == (expect != "faces")
+    assert r2 == pytest.approx((0.25 * r if expect == "small plane" else r) ** 2)
+    inside = ((pts - q) ** 2).sum(axis=1) <= r2
+    assert inside.sum() >= 200
+    assert np.abs(cached.numpy() - exact.numpy())[inside].max() < 1e-6
     if wall:
         assert exact.numpy()[-2] == pytest.approx(0.0215, abs=1e-6)  # nearer the wall
 

@@ -276,7 +276,9 @@ def refresh_candidates(mid: wp.uint64, closed: int, r: float, ci: int, q: wp.vec
     point is ``p``'s projection onto the plane of the face ``F`` closest to ``q``: ``q`` is
     outside (``phi_q > radius``, so the whole ball is in front of that plane), the ball projects
     inside ``F`` (each edge at least ``radius`` from ``q``'s projection: the closest point of
-    ``F`` is the projection), and every other candidate lies behind the plane (then a segment
+    ``F`` is the projection; failing that, the same with a quarter of the radius, and the ball
+    shrinks to it: the faces kept for the radius cover the smaller ball too), and every other
+    candidate lies behind the plane (then a segment
     from ``p`` to any of its points crosses the plane: it is no closer than the plane). Most
     vertices resting on a locally convex surface."""
     cand_count[ci] = 0
@@ -299,8 +301,15 @@ def refresh_candidates(mid: wp.uint64, closed: int, r: float, ci: int, q: wp.vec
         nf = wp.normalize(wp.cross(b1 - a, c1 - a))
         if wp.dot(q - a, nf) < 0.0:
             nf = -nf
-        plane = inside_by(a, b1, c1, nf, q, r) and inside_by(b1, c1, a, nf, q, r) and inside_by(
-            c1, a, b1, nf, q, r)
+        # the ball's projection inside F: with the radius, or else with a quarter of it (a
+        # smaller ball, refreshed sooner, but one plane instead of the faces: thin faces)
+        rp = r
+        plane = inside_by(a, b1, c1, nf, q, rp) and inside_by(b1, c1, a, nf, q, rp) and inside_by(
+            c1, a, b1, nf, q, rp)
+        if not plane:
+            rp = 0.25 * r
+            plane = inside_by(a, b1, c1, nf, q, rp) and inside_by(b1, c1, a, nf, q, rp) and (
+                inside_by(c1, a, b1, nf, q, rp))
         if plane:
             aw = wp.transform_point(T, a)
             nw = wp.transform_vector(T, nf)
@@ -311,6 +320,7 @@ def refresh_candidates(mid: wp.uint64, closed: int, r: float, ci: int, q: wp.vec
                 b0 = 3 * ci * MAX_CANDIDATES
                 cand_tris[b0] = aw
                 cand_tris[b0 + 1] = nw
+                cand_r2[ci] = rp * rp
                 cnt = PLANE
     cand_count[ci] = cnt
 
