@@ -1,16 +1,23 @@
-"""Contact kernel for the analytic obstacles (plane, sphere, box): one thread per vertex, all
-analytic obstacles of a contact fused into one launch.
+"""Contact kernels for the analytic obstacles (plane, sphere, box): all analytic obstacles of a
+contact in one far pass (a thread per vertex) and one near pass (the listed vertices), made per
+tuple of obstacle kinds (`far_kinds`: static sphere, plane or box, or moving), so each
+obstacle's tests are compiled in without branches on its kind; for explicit Euler the far pass
+runs inside the vertex update (`integrate_far_kernel`), and with static spheres and planes only
+the whole contact does (`integrate_contact_kernel`).
 
 Per vertex and obstacle (``th`` = contact thickness), in the obstacle's frame, where the obstacle
 is at rest: ``p0`` = start of step position at the pose of t0, ``p1`` = end position at the pose
 of t1 (so the obstacle's motion during the step is part of the relative path).
 
 0. Far test: ``phi(p1) >= th + slack`` and ``phi(p1) - th >= |p1 - p0|`` (phi is 1-Lipschitz, so
-   no point of the path is within ``th``): nothing to do. Most vertices stop here.
+   no point of the path is within ``th``): nothing to do. Most vertices stop here. It runs in the
+   world frame on bounds (`far_from`); for a path no longer than the slack the second condition
+   follows from the first, so a sphere's test is one squared comparison.
 1. Continuous test (sphere, box): if ``p0`` is outside the shape inflated by ``th`` and the segment
    ``p0 -> p1`` enters it (sphere: the notes' quadratic, ``physics.md`` 2.16 / T40; box: slab test),
    ``p1`` is projected onto the tangent plane at the entry point. This catches a vertex that passes
-   through the shape within one step. (A plane is a half-space: a crossing always ends inside it,
+   through the shape within one step. (A path no longer than the slack is not swept against a
+   sphere: it cannot cross one, and its end's projection is what it needs.) (A plane is a half-space: a crossing always ends inside it,
    so the discrete test below already catches it.)
 2. Discrete test: if ``phi(p1) < th``, ``p1 <- p1 + (th - phi) grad phi``.
 3. If in contact (``phi < th + slack``), the impulse of `warp_cloth.collision.response`.

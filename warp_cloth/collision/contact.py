@@ -46,33 +46,40 @@ vertex into each other (the last one wins).
   clock, which `apply` advances (correct for steps run back to back from time 0).
 
 No host decisions: ``capturable = True``. `apply` runs, per obstacle family (analytic, mesh), a
-far pass over every vertex (cheap world-frame bounds per obstacle, `motion.ObstacleReach`, and for
-meshes a per-vertex distance cache) that appends the vertices within reach to a list, and a near
-pass over the list (`NEAR_BATCH` list entries per thread); when any obstacle moves, one launch
-(a thread per obstacle) first evaluates the poses at the start and end of the step from
-``state.time``. Static spheres and planes are handled in the world frame; a mesh vertex in
-contact keeps its few nearby faces (`mesh_contact`, candidate cache). Nothing is allocated per
-step.
+far pass over every vertex that appends the vertices within reach to a list, and a near pass
+over the list (`NEAR_BATCH` list entries per thread); when any obstacle moves, one launch (a
+thread per obstacle) first evaluates the poses at the start and end of the step from
+``state.time``. The far tests use world-frame bounds per obstacle (`motion.ObstacleReach`):
+squared lengths for static spheres, boxes and planes and for short paths near moving ones, and
+for static meshes a per-vertex anchor ball that holds no surface. The kernels are made per
+tuple of obstacle kinds (`analytic.far_kinds`, the meshes' motion flags), so each obstacle's
+test is compiled in without branches on its kind. Static spheres and planes are handled in the
+world frame; a mesh vertex in contact keeps its few nearby faces, or one plane
+(`mesh_contact`, candidate cache), and such vertices are answered by a near pass of their own
+before the general (BVH) one. Explicit Euler runs the far tests inside its own vertex update
+(`integrate_and_apply`), and for static spheres and planes the whole contact. Nothing is
+allocated per step.
 
 **Cost** (``warp-cloth bench contact``: the 32x32 drape, each solver timed with and without the
 contact from the same draped state; CPU, graph replay, medians; ranges over repeated runs).
-Implicit Euler and projective dynamics: +0-4 % (analytic), +7-12 % (960-triangle mesh): their
-steps cost milliseconds. Position-based dynamics: +15-21 % (analytic), +15-22 % (mesh), with the
-contact planes. Explicit Euler is the hard case: its substep is ~37 us for 1,089 vertices
-(~34 ns a vertex, all forces included), so any per-vertex pass shows: sphere +30-38 %, sphere and
-plane +38-48 %, spinning sphere +46-51 %, mesh +75-87 %, with the far tests inside the
-integrator's kernel (`integrate_and_apply`). The benchmark's floor row, a kernel written for that
-one static sphere and nothing else (far test, continuous test, projection, impulse), costs
-+23-25 %: a 20 % target for analytic obstacles is below what a per-vertex contact pass costs for
-explicit Euler's step on this CPU.
-What Warp's CPU backend charges, measured: ~1.7 us per pass over 1,089 vertices (thread
-set-up), every variable of a kernel initialised for every thread (hence the separate far and
-near passes: one kernel holding both cost every far vertex the near path's set-up too), and
-~60-160 ns per vertex in contact (dependent chains of square roots and divisions).
-Tried and not kept: the whole contact (near path included) fused into the explicit integrator's
-kernel (slower than a separate near pass, even for the hand-written kernel), out-of-line or
-forced-inline near functions, batching vertices per thread in the far pass, a higher C++
-optimisation level.
+Implicit Euler and projective dynamics: +0-2 % (analytic), +5-10 % (960-triangle mesh): their
+steps cost milliseconds. Position-based dynamics: +11-19 % (sphere, sphere and plane), +15-25 %
+(spinning sphere; a noisy row), +16-19 % (mesh), with the contact planes. Explicit Euler is the
+hard case: its substep is ~37 us for 1,089 vertices (~34 ns a vertex, all forces included), so
+every per-vertex test shows: one static sphere +18-19.5 % (the benchmark's floor row, a
+hand-written pass for that one sphere with the same result, +17.5-19 %), mesh +42-44 %, spinning
+sphere +33-35 %, sphere and plane +27-28 %: a second obstacle's far test alone costs every vertex
+~3 ns, some 9 points of this step.
+What Warp's CPU backend charges, measured: every variable of a kernel initialised for every
+thread (hence separate far and near passes, and the mesh's general path in a kernel of its own:
+its mere call site made the common case a fifth dearer), a struct passed by value copied at
+every call (the far tests read the fields in place: a third of the far pass), each thread
+starting from its own copy of the kernel's arguments (the mesh far pass takes three arrays, not
+the cache struct), and ~50-100 ns per vertex in contact (dependent chains of square roots and
+divisions).
+Tried and not kept: the mesh's candidate path inside the integrator's kernel (no gain measured),
+testing the mesh's bounding ball before the anchor ball (slower), out-of-line or forced-inline
+near functions, batching vertices per thread in the far pass, a higher C++ optimisation level.
 """
 
 from __future__ import annotations

@@ -20,9 +20,10 @@ obstacle's motion during the step is part of the relative path), with contact th
    side (open).
 3. In contact: the impulse of `warp_cloth.collision.response`.
 
-Two passes per step. ``mesh_far_kernel`` (every vertex) runs the far tests below and appends
-the vertices that pass none to a list; ``mesh_near_kernel`` runs steps 0-3 for the listed
-vertices only, strided over ``N / NEAR_BATCH`` threads. (On Warp's CPU backend a kernel
+Passes per step: ``mesh_far_kernel`` (every vertex) runs the far tests below and appends the
+vertices that pass none to a list; ``mesh_near_kernel`` answers, strided over ``N / NEAR_BATCH``
+threads, the listed vertices whose path lies in a static mesh's candidate ball (below) and
+lists the rest for ``mesh_general_kernel``, which runs steps 0-3. (On Warp's CPU backend a kernel
 initialises all its variables and by-value call arguments for every thread, so a single kernel
 holding the near path cost every far vertex as much again; measured with ``warp-cloth bench
 contact``.)
@@ -53,7 +54,9 @@ closest to ``q`` (triangle inequality: ``> |phi_q| + 2r - r >= |phi_q| + r``), s
 point among the kept faces is the mesh's closest point, and (b) every point of the path is at
 least ``|phi_q| - r > 0`` from the surface, so the path crosses none and keeps the sign of
 ``phi_q``: no ray or point query is needed. A draped vertex refreshes only when it has slid
-``r``. Checked against the BVH queries step by step in ``tests/test_contact.py``.
+``r``. Checked against the BVH queries step by step in ``tests/test_contact.py``. Where the
+ball projects inside its closest face and every other candidate lies behind that face's plane,
+the entry keeps only the plane (`PLANE`; `refresh_candidates` has the argument).
 """
 
 from __future__ import annotations
