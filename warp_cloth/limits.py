@@ -51,6 +51,8 @@ import math
 import numpy as np
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 __all__ = ["StrainLimit", "AreaLimit", "edge_projection", "color_constraints"]
 
 

@@ -7,6 +7,8 @@ import time
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 
 @wp.kernel
 def trivial_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), dt: float):

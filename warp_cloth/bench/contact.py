@@ -61,6 +61,8 @@ from ..collision.response import impulse
 from ..util import quiet_warp
 from .common import capture, markdown_table
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 TARGETS = {"sphere": 0.20, "sphere+plane": 0.20, "spinning sphere": 0.20, "mesh sphere": 0.50}
 FLOOR = "sphere (floor: hand-specialised kernel)"
 CENTER = (0.0, 0.5, 0.0)

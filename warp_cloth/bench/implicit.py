@@ -38,6 +38,8 @@ import time
 import numpy as np
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 
 def _median_ms(fn, repeats):
     out = []

@@ -27,6 +27,8 @@ import warp as wp
 from ..util import quiet_warp
 from .common import capture, markdown_table, time_callable
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 
 @wp.kernel
 def bare_edge_kernel(

@@ -33,6 +33,8 @@ from ..solvers.explicit import symplectic_velocity
 from .planes import ContactPlanes
 from .response import contact_outcome, outcome_in_frame
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 
 @wp.func
 def shape_sdf(kind: int, size: wp.vec3, p: wp.vec3):
@@ -350,6 +352,9 @@ def _kernels(kinds):
 
 def _make_far_kernels(kinds):
     num = len(kinds)
+    # the four kernels of one tuple in one module (one compile), without the backward pass
+    module = "warp_cloth.collision.analytic_kinds_" + "_".join(str(k) for k in kinds)
+    wp.set_module_options({"enable_backward": False}, module=module)
     # which test each obstacle needs, as constants of the generated code (the unrolled loop
     # keeps one test per obstacle, without the branches on its kind and motion)
     BALLS = wp.constant(sum(1 << k for k, c in enumerate(kinds) if c in (FAR_BALL, FAR_SPHERE)))
@@ -375,7 +380,7 @@ def _make_far_kernels(kinds):
                 return k
         return -1
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module=module)
     def near_kernel(
         obstacles: wp.array(dtype=ObstacleData),
         reaches: wp.array(dtype=ObstacleReach),
@@ -422,7 +427,7 @@ def _make_far_kernels(kinds):
                 if respond_velocity != 0:
                     v[i] = vi
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module=module)
     def far_kernel(
         reaches: wp.array(dtype=ObstacleReach),
         x: wp.array(dtype=wp.vec3),
@@ -457,7 +462,7 @@ def _make_far_kernels(kinds):
         if first_near(reaches, first, x0, x1, reach, thickness, ccd) >= 0:
             near_list[wp.atomic_add(near_count, 0, 1)] = i
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module=module)
     def integrate_far(
         x: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),
@@ -492,7 +497,7 @@ def _make_far_kernels(kinds):
             x_start[i] = x0
             near_list[wp.atomic_add(near_count, 0, 1)] = i
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module=module)
     def integrate_contact(
         x: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),

@@ -69,6 +69,8 @@ from ..solvers.explicit import symplectic_velocity
 from .planes import ContactPlanes
 from .response import contact_outcome, outcome_in_frame
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 
 @wp.func
 def closest(mid: wp.uint64, closed: int, p: wp.vec3, p_from: wp.vec3, center: wp.vec3,
@@ -558,6 +560,9 @@ def _kernels(moving):
 
 def _make_far_kernels(moving):
     num = len(moving)
+    # the kernels of one tuple in one module (one compile), without the backward pass
+    module = "warp_cloth.collision.mesh_contact_moving_" + "".join(str(int(m)) for m in moving)
+    wp.set_module_options({"enable_backward": False}, module=module)
     # which meshes move, as constants of the generated code: the unrolled loop keeps only the
     # test each mesh needs (anchor balls for static meshes; the per-step budget for moving ones)
     MOVING = wp.constant(sum(1 << k for k, m in enumerate(moving) if m))
@@ -614,7 +619,7 @@ def _make_far_kernels(moving):
             mask = mask | (1 << wp.min(k, 31))
         return mask
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module=module)
     def far_kernel(
         reaches: wp.array(dtype=ObstacleReach),
         x: wp.array(dtype=wp.vec3),
@@ -653,7 +658,7 @@ def _make_far_kernels(moving):
         elif caching and ANY_MOVING != 0:
             last[i] = x1
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module=module)
     def integrate_far(
         x: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 __all__ = [
     "KeyframePath", "Motion", "ObstacleData", "ObstacleReach", "obstacle_pose", "step_reach", "quat_from_axis_angle",
     "quat_between", "quat_multiply", "quat_rotate", "KIND_PLANE", "KIND_SPHERE", "KIND_BOX",

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 
 @wp.struct
 class ContactPlanes:

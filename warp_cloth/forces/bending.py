@@ -59,6 +59,8 @@ import warnings
 import numpy as np
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 __all__ = ["DihedralBending", "QuadraticBending", "dihedral_angles"]
 
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 
 @wp.func
 def spring_force(xi: wp.vec3, xj: wp.vec3, k: float, rest: float):

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 
 @wp.kernel
 def wind_forces_kernel(

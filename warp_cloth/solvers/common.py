@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 
 @wp.func
 def pin_target(times: wp.array(dtype=wp.float64), keys: wp.array(dtype=wp.vec3), num_pins: int,

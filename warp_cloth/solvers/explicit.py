@@ -22,6 +22,8 @@ import warp as wp
 
 from .base import Solver
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 
 @wp.func
 def symplectic_velocity(v: wp.vec3, f: wp.vec3, w: float, gravity: wp.vec3, decay: float, dt: float):

@@ -72,6 +72,8 @@ from ..forces.springs import spring_force
 from .base import Solver
 from .linear import CGSolver, SpringSystemOperator, make_linear_solver, spring_block_matrix
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 __all__ = ["ImplicitEuler"]
 
 

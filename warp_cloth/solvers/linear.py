@@ -40,6 +40,8 @@ import math
 import numpy as np
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 __all__ = [
     "JacobiSolver", "ChebyshevSolver", "CGSolver", "make_linear_solver", "SpringSystemOperator",
     "estimate_spectral_radius", "dense_matrix", "LINEAR_SOLVERS",

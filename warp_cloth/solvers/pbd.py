@@ -80,6 +80,8 @@ from ..forces.springs import SpringForce
 from ..limits import color_constraints, edge_projection
 from .base import Solver
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 __all__ = ["PositionBased", "color_constraints"]
 
 

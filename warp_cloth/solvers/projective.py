@@ -69,6 +69,8 @@ import warp as wp
 from .base import Solver
 from .linear import LINEAR_SOLVERS, estimate_spectral_radius, make_linear_solver
 
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
 __all__ = ["ProjectiveDynamics", "PDSystemOperator"]
 
 
