@@ -66,18 +66,6 @@ def shape_sdf(kind: int, size: wp.vec3, p: wp.vec3):
 
 
 @wp.func
-def shape_phi(kind: int, size: wp.vec3, p: wp.vec3):
-    """The signed distance alone (cheaper than `shape_sdf`: no normal)."""
-    if kind == KIND_PLANE:
-        return p[1]
-    if kind == KIND_SPHERE:
-        return wp.length(p) - size[0]
-    q = wp.vec3(wp.abs(p[0]) - size[0], wp.abs(p[1]) - size[1], wp.abs(p[2]) - size[2])
-    qo = wp.vec3(wp.max(q[0], 0.0), wp.max(q[1], 0.0), wp.max(q[2], 0.0))
-    return wp.length(qo) + wp.min(wp.max(q[0], wp.max(q[1], q[2])), 0.0)
-
-
-@wp.func
 def shape_ccd(kind: int, size: wp.vec3, th: float, p0: wp.vec3, p1: wp.vec3, short2: float):
     """First entry of the segment p0 -> p1 into the shape inflated by ``th``.
 
