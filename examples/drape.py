@@ -2,14 +2,14 @@
 
     python examples/drape.py --out drape.usd [--frames 120 --solver explicit --friction 0.4]
 
-Shows the contact API: obstacles from `warp_cloth.collision`, an `ObstacleContact` correction
-added to the solver, and the obstacles handed to the `Scene` so they are written to the stage.
+Shows the contact API: obstacles from `warp_cloth.collision`, given once, to a `CollisionStage`
+that the solver uses inside its solve; the scene draws the stage's obstacles.
 """
 
 import argparse
 
 import warp_cloth as wc
-from warp_cloth.collision import ObstacleContact, Plane, Sphere
+from warp_cloth.collision import CollisionStage, Plane, Sphere
 from warp_cloth.util import quiet_warp
 
 
@@ -29,10 +29,10 @@ def main():
     model = wc.ClothModel(mesh, density=0.15, stretch_stiffness=1000.0, damping=0.1,
                           device=args.device)
     obstacles = [Sphere(0.3, center=(0.0, 0.5, 0.0)), Plane(point=(0.0, 0.0, 0.0))]
-    solver = wc.make_solver(args.solver, model)
-    solver.add_correction(ObstacleContact(model, obstacles, thickness=0.005,
-                                          friction=args.friction, restitution=0.0))
-    scene = wc.Scene(model, solver, fps=60, frames=args.frames, obstacles=obstacles, name="drape")
+    stage = CollisionStage(model, obstacles, thickness=0.005, friction=args.friction,
+                           restitution=0.0)
+    solver = wc.make_solver(args.solver, model, collision=stage)
+    scene = wc.Scene(model, solver, fps=60, frames=args.frames, name="drape")
     print(scene.run(args.out).summary())
 
 

@@ -9,7 +9,7 @@ with --mesh (closed meshes push vertices out, open ones are two-sided).
 
 import argparse
 
-from warp_cloth.collision.scenes import mesh
+from warp_cloth.contact_scenes import mesh
 from warp_cloth.util import quiet_warp
 
 

@@ -11,7 +11,7 @@ import argparse
 
 import numpy as np
 
-from warp_cloth.collision.scenes import spin
+from warp_cloth.contact_scenes import spin
 from warp_cloth.util import quiet_warp
 
 

@@ -8,7 +8,7 @@ weight pull the cloth off. Same as ``warp-cloth run table``.
 
 import argparse
 
-from warp_cloth.collision.scenes import table
+from warp_cloth.contact_scenes import table
 from warp_cloth.util import quiet_warp
 
 

@@ -13,7 +13,7 @@ from warp_cloth.collision import (
     Sphere, quat_from_axis_angle,
 )
 from warp_cloth.collision import analytic, mesh_contact, motion
-from warp_cloth.collision.scenes import asset_path, sheet_model
+from warp_cloth.contact_scenes import asset_path, sheet_model
 from warp_cloth.scene import suggest_substeps
 from warp_cloth.solvers import available
 
@@ -275,13 +275,14 @@ def angular_momentum_y(model, st, center):
     return float((model.masses[:, None] * np.cross(r, st.velocities()))[:, 1].sum())
 
 
-def test_spinning_sphere_carries_cloth_with_friction_only():
-    from warp_cloth.collision.scenes import spin
+@pytest.mark.parametrize("solver_name", SOLVERS)
+def test_spinning_sphere_carries_cloth_with_friction_only(solver_name):
+    from warp_cloth.contact_scenes import spin
 
     out = {}
     for mu in (0.6, 0.0):
         scene = spin(res=10, size=0.8, frames=31, friction=mu, start=0.1, ramp=0.1,
-                     spin_rate=4.0, height=0.81)
+                     spin_rate=4.0, height=0.81, solver=solver_name)
         scene.run(quiet=True, energy=False)
         c = np.array(scene.contact.obstacles[0].position)
         out[mu] = angular_momentum_y(scene.model, scene.state, c)
@@ -329,7 +330,7 @@ def test_project_positions_moves_positions_only():
 def test_usd_output_has_animated_obstacles(tmp_usd):
     from pxr import Usd, UsdGeom
 
-    from warp_cloth.collision.scenes import mesh as mesh_scene
+    from warp_cloth.contact_scenes import mesh as mesh_scene
 
     scene = mesh_scene(res=4, frames=4, fps=2.0)
     scene.run(tmp_usd, quiet=True)
@@ -357,11 +358,11 @@ def test_cli_scenes_build_and_run(name, tmp_usd):
     scene = build_scene(name, res=4, frames=3, solver="explicit")
     stats = scene.run(tmp_usd, quiet=True)
     assert stats.frames == 3 and stats.captured in (True, False)
-    assert scene.contact in scene.solver.corrections and scene.solver.capturable
+    assert scene.solver.collision.contact is scene.contact and scene.solver.capturable
 
 
 def test_table_cloth_slides_off_the_edge():
-    from warp_cloth.collision.scenes import table
+    from warp_cloth.contact_scenes import table
 
     scene = table(res=8, frames=150)
     scene.run(quiet=True, energy=False)
@@ -587,7 +588,7 @@ def test_explicit_fused_contact_matches_separate_pass(kind):
         contact = ObstacleContact(model, obs, friction=0.3, fuse=fuse)
         solver = make_solver("explicit", model)
         solver.add_correction(contact)
-        assert (solver.fused is contact) == fuse
+        assert (solver.fused is not None and solver.fused.contact is contact) == fuse
         st = model.state()
         dt = solver_dt(solver)
         touching = 0

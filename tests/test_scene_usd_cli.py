@@ -159,7 +159,7 @@ def test_cli_contact_options_reach_the_contact(tmp_path, monkeypatch):
     real_run = scene_mod.Scene.run
 
     def spy(self, *a, **k):
-        captured["contact"] = [c for c in self.solver.corrections if hasattr(c, "project_positions")][0]
+        captured["contact"] = self.solver.collision.contact
         k["on_frame"] = None
         return real_run(self, *a, **k)
 

@@ -22,7 +22,7 @@ SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh"]
 SOLVER_NAMES = ["explicit", "implicit", "pbd", "pd"]
 CONTACT_SCENES = ["drape", "table", "spin", "mesh"]
 CONTACT_OPTIONS = ["friction", "restitution", "thickness"]
-BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability"]
+BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability", "ccd"]
 
 # option -> (solver option name, solvers that accept it)
 SOLVER_OPTIONS = {

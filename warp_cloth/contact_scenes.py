@@ -3,8 +3,8 @@
 Same keyword style as `warp_cloth.scenes.hanging`: SI units, real-cloth defaults (a free 1 m sheet
 of 0.15 kg/m^2 with 1000 N/m springs), ``solver=`` any of `warp_cloth.solvers.available()`, and the
 contact options ``thickness`` (m), ``friction`` (mu_T) and ``restitution`` (mu_N). Each returns a
-`Scene` whose solver carries an `ObstacleContact` (after any ``corrections`` given) and whose
-obstacles are written to the USD stage.
+`Scene` whose solver carries a `CollisionStage` with the obstacles (simulated, and written to the
+USD stage by the runner); ``scene.collision`` is that stage.
 
 - ``drape``: a sheet falls onto a sphere (r = 0.3 m) and drapes over it.
 - ``table``: a sheet falls on a table (a box, top at 0.75 m) with most of it over the edge, and
@@ -22,17 +22,18 @@ import os
 
 import numpy as np
 
-from ..mesh import TriMesh
-from ..model import DEFAULT_DENSITY, DEFAULT_STRETCH_STIFFNESS, ClothModel
-from ..scenes import _finish, _grid_shape
-from .contact import DEFAULT_THICKNESS, ObstacleContact
-from .motion import KeyframePath, Motion, quat_from_axis_angle
-from .obstacles import Box, MeshObstacle, Plane, Sphere
+from .collision import CollisionStage
+from .collision.contact import DEFAULT_THICKNESS
+from .collision.motion import KeyframePath, Motion, quat_from_axis_angle
+from .collision.obstacles import Box, MeshObstacle, Plane, Sphere
+from .mesh import TriMesh
+from .model import DEFAULT_DENSITY, DEFAULT_STRETCH_STIFFNESS, ClothModel
+from .scenes import _finish, _grid_shape
 
 __all__ = ["drape", "table", "spin", "mesh", "sheet_model", "asset_path"]
 
 #: the meshes shipped with the package (``warp_cloth/assets``; ``assets/make_assets.py`` makes them)
-ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "assets")
+ASSETS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "assets")
 
 
 def asset_path(name: str) -> str:
@@ -62,11 +63,12 @@ def sheet_model(*, res: int = 32, shape=None, size: float = 1.0, height: float =
 def _contact_scene(model, obstacles, *, solver, solver_options, fps, frames, substeps,
                    corrections, extra_obstacles, strain_bound, name, thickness, friction,
                    restitution, ccd=True):
-    contact = ObstacleContact(model, obstacles, thickness=thickness, friction=friction,
-                              restitution=restitution, ccd=ccd)
-    scene = _finish(model, solver, solver_options, [*corrections, contact], fps, frames, substeps,
-                    [*obstacles, *extra_obstacles], strain_bound, name)
-    scene.contact = contact
+    stage = CollisionStage(model, [*obstacles, *extra_obstacles], thickness=thickness,
+                           friction=friction, restitution=restitution, ccd=ccd)
+    scene = _finish(model, solver, solver_options, corrections, fps, frames, substeps, (),
+                    strain_bound, name, collision=stage)
+    scene.contact = stage.contact
+    scene.collision = stage
     return scene
 
 
@@ -76,7 +78,7 @@ def drape(*, solver: str = "explicit", solver_options: dict | None = None, fps: 
           ground: bool = False, thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
           restitution: float = 0.0, height: float = 0.9, **model_args):
     """A sheet dropped from ``height`` m onto a sphere of ``radius`` m (and a floor if
-    ``ground``). ``obstacles`` are extra obstacles for the USD stage only."""
+    ``ground``). ``obstacles``: more obstacles, simulated and drawn like the others."""
     model = sheet_model(height=height, **model_args)
     obs = [Sphere(radius, sphere_center)]
     if ground:

@@ -101,7 +101,10 @@ class Scene:
         frames: number of frames written, including frame 0 (the initial state).
         substeps: solver steps per frame; ``None`` asks the solver (`suggest_substeps`), which for
             the explicit solver derives it from its stability bound.
-        obstacles: obstacles written to the stage (contact itself is a solver correction).
+        obstacles: obstacles for a solver without a collision stage: the runner gives the
+            solver a `CollisionStage` with them (default contact options), so they are
+            simulated and drawn. A solver with a stage is drawn with the stage's obstacles;
+            giving others here then raises `ValueError` (obstacles are given in one place).
         strain_bound: the divergence guard stops the run when a mesh edge's stretch
             ``l/L - 1`` exceeds this (default 10, i.e. 1000 %); ``inf`` disables it.
         capture: replay each frame's substeps as a recorded Warp graph when the solver allows.
@@ -130,7 +133,7 @@ class Scene:
         self.model, self.solver = model, solver
         self.fps, self.frames, self.substeps = fps, int(frames), int(substeps)
         self.dt = 1.0 / (fps * self.substeps)
-        self.obstacles = list(obstacles)
+        self.obstacles = _scene_obstacles(model, solver, obstacles)
         self.strain_bound = float(strain_bound)
         self.capture = capture
         self.name = name
@@ -224,6 +227,36 @@ class Scene:
             energy_final=mfin.energy, captured=graph is not None, timed_frames=timed,
             out=os.fspath(out) if out is not None else None, extra=dict(solver.stats),
         )
+
+
+def _scene_obstacles(model, solver, obstacles) -> list:
+    """The obstacles to draw: the solver's collision stage's (made here from ``obstacles`` when
+    the solver has none)."""
+    from .collision import Obstacle
+
+    if isinstance(obstacles, Obstacle):
+        obstacles = [obstacles]
+    obstacles = list(obstacles or ())
+    for k, ob in enumerate(obstacles):
+        if not isinstance(ob, Obstacle):
+            raise ValueError(f"obstacles[{k}] is a {type(ob).__name__}, not an obstacle")
+    stage = getattr(solver, "collision", None)
+    if stage is None:
+        if obstacles:
+            from .collision import CollisionStage
+
+            solver.set_collision(CollisionStage(model, obstacles))
+            stage = solver.collision
+        else:
+            return []
+    elif obstacles:
+        known = {id(ob) for ob in stage.obstacles}
+        extra = [k for k, ob in enumerate(obstacles) if id(ob) not in known]
+        if extra:
+            raise ValueError(f"obstacles{extra} given to the Scene are not in the solver's "
+                             "collision stage: give every obstacle to the CollisionStage only "
+                             "(the scene draws the stage's obstacles)")
+    return stage.obstacles
 
 
 def suggest_substeps(solver, frame_dt: float) -> int:

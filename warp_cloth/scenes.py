@@ -30,8 +30,10 @@ def _grid_shape(res, shape):
 
 
 def _finish(model, solver, solver_options, corrections, fps, frames, substeps, obstacles,
-            strain_bound, name):
+            strain_bound, name, collision=None):
     solver_obj = make_solver(solver, model, **(solver_options or {}))
+    if collision is not None:
+        solver_obj.set_collision(collision)
     for c in corrections or ():
         # a correction object, or a factory ``model -> correction`` (the CLI passes factories)
         solver_obj.add_correction(c if hasattr(c, "apply") else c(model))
@@ -90,10 +92,10 @@ SCENES = {"hanging": hanging, "flag": flag}
 
 #: scenes whose builders live with the feature they need (imported on demand)
 LAZY_SCENES = {
-    "drape": "warp_cloth.collision.scenes",
-    "table": "warp_cloth.collision.scenes",
-    "spin": "warp_cloth.collision.scenes",
-    "mesh": "warp_cloth.collision.scenes",
+    "drape": "warp_cloth.contact_scenes",
+    "table": "warp_cloth.contact_scenes",
+    "spin": "warp_cloth.contact_scenes",
+    "mesh": "warp_cloth.contact_scenes",
 }
 
 

@@ -13,9 +13,9 @@ The drape scene (a free 1 m sheet, ``--res`` cells a side, 0.15 kg/m^2, 1000 N/m
 ``--warmup`` frames with contact so that it lies draped on the obstacle (the expensive case: many
 vertices within the contact thickness). Then every device array of the state, the solver, its
 linear solver and the contact (its caches included) is snapshotted, and one frame of substeps is
-recorded twice as a Warp graph on the *same* solver and state objects: with the contact
-correction, and with it taken out of ``solver.corrections`` (and the solver's ``x_start`` copy
-switched off, as in a solver built without corrections; both are put back after recording).
+recorded twice as a Warp graph on the *same* solver and state objects: with the collision stage,
+and with it taken out (``solver.collision = None``, and the solver's ``x_start`` copy switched
+off, as in a solver built without obstacles; both are put back after recording).
 Before every timed frame the snapshot is restored (outside the timed region), so both variants
 start each frame from the same draped state with the same warm starts: the baseline does the
 solver's own work on the draped state, not the (cheaper, for iterative solvers) work of a free
@@ -33,7 +33,10 @@ frame, with and without contact, are reported.
 
 What the overhead contains: the ``x_start`` copy and the contact launches (for position-based
 dynamics the contact projection runs inside every constraint iteration, and the velocity update
-that the last iteration would otherwise fuse runs as its own launch).
+that the last iteration would otherwise fuse runs as its own launch; for implicit Euler and
+projective dynamics the detection of the step's contacts into the record, the contact term in
+every Newton assembly or local step, the per-vertex contact blocks in every matrix product, and
+the final ``resolve``).
 
 **Floor row** (explicit solver, static sphere): a hand-written kernel here that does the complete
 contact for exactly that sphere (far test by squared lengths, the sphere's continuous test for
@@ -80,7 +83,7 @@ EQUAL_WORK_OPTIONS = {"implicit": dict(tolerance=None, newton_iterations=8, line
 
 def _configs():
     from ..collision import MeshObstacle, Motion, Plane, Sphere
-    from ..collision.scenes import asset_path
+    from ..contact_scenes import asset_path
 
     c = CENTER
     return {
@@ -194,7 +197,7 @@ class Setup:
 
     def __init__(self, solver_name, config, make, args, warmup, floor=False, options=None):
         from ..collision import ObstacleContact
-        from ..collision.scenes import sheet_model
+        from ..contact_scenes import sheet_model
         from ..scene import suggest_substeps
         from ..solvers import make_solver
 
@@ -204,7 +207,8 @@ class Setup:
         self.options = dict(options or {})
         self.solver = solver = make_solver(solver_name, model, **self.options)
         self.contact = contact = ObstacleContact(model, make())
-        solver.add_correction(contact)
+        solver.set_collision(contact)
+        stage = solver.collision
         self.substeps = args.substeps or suggest_substeps(solver, 1.0 / 60.0)
         self.dt = 1.0 / (60.0 * self.substeps)
         self.state = model.state()
@@ -212,9 +216,10 @@ class Setup:
         self.work = {}  # variant -> [newton, inner] iterations of the last uncaptured frame
 
         x_start = solver._x_start
-        self.variants = {"without": ([], None), "with": ([contact], x_start)}
+        # variant -> (corrections, collision stage, x_start)
+        self.variants = {"without": ([], None, None), "with": ([], stage, x_start)}
         if floor:
-            self.variants["floor"] = ([FloorSphereContact(model, contact)], x_start)
+            self.variants["floor"] = ([FloorSphereContact(model, contact)], None, x_start)
         self.graphs = {}
 
         self._use("with")
@@ -227,8 +232,10 @@ class Setup:
         wp.synchronize_device(self.device)
 
         linear = getattr(solver, "linear", None)
+        coupling = getattr(solver, "_coupling", None)
         self._arrays = _device_arrays(self.state, solver, linear, getattr(solver, "A", None),
-                                      getattr(solver, "operator", None), contact)
+                                      getattr(solver, "operator", None), contact, stage,
+                                      coupling)
         self._snap = [wp.clone(a) for a in self._arrays]
         for name in self.variants:
             if name == "with":
@@ -257,8 +264,9 @@ class Setup:
         return int(touched.sum())
 
     def _use(self, name):
-        corrections, x_start = self.variants[name]
+        corrections, stage, x_start = self.variants[name]
         self.solver.corrections = list(corrections)
+        self.solver.collision = stage
         self.solver._x_start = x_start
 
     def frame(self, name):

@@ -29,7 +29,6 @@ import warp as wp
 
 from .motion import (FAST_NONE, FAST_SPHERE, KIND_BOX, KIND_PLANE, KIND_SPHERE, ObstacleData,
                      ObstacleReach)
-from ..solvers.explicit import symplectic_velocity
 from .planes import ContactPlanes
 from .response import contact_outcome, outcome_in_frame
 
@@ -66,6 +65,30 @@ def shape_sdf(kind: int, size: wp.vec3, p: wp.vec3):
 
 
 @wp.func
+def slab_entry(p0: wp.vec3, d: wp.vec3, ext: wp.vec3):
+    """Slab test of the segment ``p0 -> p0 + d`` against the box ``|p_k| <= ext_k``: (enters,
+    entry parameter in [0, 1], entry axis). A segment starting inside does not enter."""
+    tmin = float(0.0)
+    tmax = float(1.0)
+    axis = int(-1)
+    miss = bool(False)
+    for k in range(3):
+        if wp.abs(d[k]) < 1.0e-12:
+            if wp.abs(p0[k]) > ext[k]:
+                miss = True
+        else:
+            ta = (-ext[k] - p0[k]) / d[k]
+            tb = (ext[k] - p0[k]) / d[k]
+            tn = wp.min(ta, tb)
+            tf = wp.max(ta, tb)
+            if tn > tmin:
+                tmin = tn
+                axis = k
+            tmax = wp.min(tmax, tf)
+    return (not miss) and axis >= 0 and tmin <= tmax, tmin, axis
+
+
+@wp.func
 def shape_ccd(kind: int, size: wp.vec3, th: float, p0: wp.vec3, p1: wp.vec3, short2: float):
     """First entry of the segment p0 -> p1 into the shape inflated by ``th``.
 
@@ -89,28 +112,17 @@ def shape_ccd(kind: int, size: wp.vec3, th: float, p0: wp.vec3, p1: wp.vec3, sho
                     return True, h, wp.normalize(h)
         return False, p1, wp.vec3(0.0, 1.0, 0.0)
     if kind == KIND_BOX:
-        ext = size + wp.vec3(th)
-        tmin = float(0.0)
-        tmax = float(1.0)
-        axis = int(-1)
-        miss = False
-        for k in range(3):
-            if wp.abs(d[k]) < 1.0e-12:
-                if wp.abs(p0[k]) > ext[k]:
-                    miss = True
-            else:
-                ta = (-ext[k] - p0[k]) / d[k]
-                tb = (ext[k] - p0[k]) / d[k]
-                tn = wp.min(ta, tb)
-                tf = wp.max(ta, tb)
-                if tn > tmin:
-                    tmin = tn
-                    axis = k
-                tmax = wp.min(tmax, tf)
-        if not miss and axis >= 0 and tmin <= tmax:
-            n = wp.vec3(0.0)
-            n[axis] = -wp.sign(d[axis])
-            return True, p0 + tmin * d, n
+        # a path that enters the box itself is stopped where it enters the box inflated by th;
+        # one that only cuts the inflated box's edge or corner region (outside the rounded
+        # thickness layer, or barely in it) is not: its end's projection is all it needs, and
+        # stopping it would hold a vertex sliding over an edge up in the air
+        hit0, t0, axis0 = slab_entry(p0, d, size)
+        if hit0:
+            hit, t, axis = slab_entry(p0, d, size + wp.vec3(th))
+            if hit:
+                n = wp.vec3(0.0)
+                n[axis] = -wp.sign(d[axis])
+                return True, p0 + t * d, n
     return False, p1, wp.vec3(0.0, 1.0, 0.0)
 
 
@@ -290,30 +302,32 @@ def static_near(
 _KERNELS = {}
 
 
-def analytic_far_kernel(kinds):
+def analytic_far_kernel(kinds, update=None):
     """The far pass for analytic obstacles with the given `far_kinds` (a kernel per tuple, made
     on first use: a loop of known length is unrolled, which measured 30 % cheaper than a loop
     over ``reaches.shape[0]`` on the CPU, and each obstacle keeps only its own test)."""
-    return _kernels(kinds)[0]
+    return _kernels(kinds, update)[0]
 
 
-def integrate_far_kernel(kinds):
-    """Symplectic Euler's vertex update with the far pass of `analytic_far_kernel` in the same
-    thread (`ObstacleContact.integrate_and_apply`)."""
-    return _kernels(kinds)[1]
+def integrate_far_kernel(kinds, update):
+    """A solver's vertex update with the far pass of `analytic_far_kernel` in the same thread
+    (`ObstacleContact.integrate_and_apply`). ``update`` is the solver's Warp function
+    ``(v, f, inv_mass, gravity, decay, dt) -> new v`` (the collision layer knows no solver)."""
+    return _kernels(kinds, update)[1]
 
 
-def integrate_contact_kernel(kinds):
-    """Symplectic Euler's vertex update with the whole contact in the same thread, for static
+def integrate_contact_kernel(kinds, update):
+    """A solver's vertex update with the whole contact in the same thread, for static
     spheres and planes only (`FAR_SPHERE`, `FAR_PLANE`)."""
     if any(k not in (FAR_SPHERE, FAR_PLANE) for k in kinds):
         raise ValueError("integrate_contact_kernel is for static spheres and planes only")
-    return _kernels(kinds)[3]
+    return _kernels(kinds, update)[3]
 
 
-def analytic_near_kernel(kinds):
-    """The near pass (the listed vertices) for analytic obstacles with the given `far_kinds`."""
-    return _kernels(kinds)[2]
+def analytic_near_kernel(kinds, update=None):
+    """The near pass (the listed vertices) for analytic obstacles with the given `far_kinds`
+    (``update``: the module the solver's fused kernels share, so one compile serves both)."""
+    return _kernels(kinds, update)[2]
 
 
 #: `far_kinds` codes: what each obstacle's kernels compile in. GENERAL: moving (general far test,
@@ -330,18 +344,21 @@ def far_kinds(obstacles) -> tuple:
                  else FAR_SPHERE if ob.kind == KIND_SPHERE else FAR_BALL for ob in obstacles)
 
 
-def _kernels(kinds):
+def _kernels(kinds, update=None):
     kinds = tuple(int(k) for k in kinds)
-    kernels = _KERNELS.get(kinds)
+    key = (kinds, update)
+    kernels = _KERNELS.get(key)
     if kernels is None:
-        kernels = _KERNELS[kinds] = _make_far_kernels(kinds)
+        kernels = _KERNELS[key] = _make_far_kernels(kinds, update)
     return kernels
 
 
-def _make_far_kernels(kinds):
+def _make_far_kernels(kinds, update):
     num = len(kinds)
     # the four kernels of one tuple in one module (one compile), without the backward pass
     module = "warp_cloth.collision.analytic_kinds_" + "_".join(str(k) for k in kinds)
+    if update is not None:
+        module += "_" + update.key
     wp.set_module_options({"enable_backward": False}, module=module)
     # which test each obstacle needs, as constants of the generated code (the unrolled loop
     # keeps one test per obstacle, without the branches on its kind and motion)
@@ -450,6 +467,9 @@ def _make_far_kernels(kinds):
         if first_near(reaches, first, x0, x1, reach, thickness, ccd) >= 0:
             near_list[wp.atomic_add(near_count, 0, 1)] = i
 
+    if update is None:
+        return far_kernel, None, near_kernel, None
+
     @wp.kernel(module=module)
     def integrate_far(
         x: wp.array(dtype=wp.vec3),
@@ -467,7 +487,7 @@ def _make_far_kernels(kinds):
         near_count: wp.array(dtype=int),
         near_list: wp.array(dtype=int),
     ):
-        """`integrate_symplectic_kernel`, then the far tests of the new path; a vertex that
+        """The solver's vertex update (``update``), then the far tests of the new path; a vertex that
         passes none is listed for the near pass, and only its start position is written to
         ``x_start`` (the near pass reads no other)."""
         i = wp.tid()
@@ -477,7 +497,7 @@ def _make_far_kernels(kinds):
         if w == 0.0:
             return
         x0 = x[i]
-        vi = symplectic_velocity(v[i], fi, w, gravity, decay, dt)
+        vi = update(v[i], fi, w, gravity, decay, dt)
         x1 = x0 + dt * vi
         v[i] = vi
         x[i] = x1
@@ -499,7 +519,7 @@ def _make_far_kernels(kinds):
         slack: float,
         ccd: int,
     ):
-        """For static spheres and planes only: `integrate_symplectic_kernel` and the whole
+        """For static spheres and planes only: the solver's vertex update and the whole
         contact (far tests, then `static_near` from the first obstacle within reach) in one
         thread: no list, no second pass. The same result as `integrate_far` and `near_kernel`
         (their world-frame path has few variables, so far vertices do not pay for it)."""
@@ -510,7 +530,7 @@ def _make_far_kernels(kinds):
         if w == 0.0:
             return
         x0 = x[i]
-        vi = symplectic_velocity(v[i], fi, w, gravity, decay, dt)
+        vi = update(v[i], fi, w, gravity, decay, dt)
         x1 = x0 + dt * vi
         v[i] = vi
         reach = thickness + slack

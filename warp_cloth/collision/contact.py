@@ -178,6 +178,9 @@ class ObstacleContact:
                                  else _num("candidate_radius", candidate_radius, 0.0))
         d = self.device
         self.clock = wp.zeros(1, dtype=wp.float64, device=d)
+        #: the vertex-update function of the solver whose step runs the far tests (see
+        #: `integrate_and_apply`); the far and near kernels are made in the same module
+        self._update = None
 
         # keyframes of all obstacles in shared arrays (a dummy key when none has a path)
         times, offs, rots, starts = [], [], [], []
@@ -310,12 +313,14 @@ class ObstacleContact:
         `apply`)."""
         return self.fuse and not (self.analytic and self.meshes)
 
-    def integrate_and_apply(self, state, x_start, f, gravity, decay: float, dt: float) -> None:
-        """Symplectic Euler's vertex update and `apply`, with the far tests in the same pass.
+    def integrate_and_apply(self, state, x_start, f, gravity, decay: float, dt: float,
+                            update) -> None:
+        """A solver's vertex update and `apply`, with the far tests in the same pass.
 
-        ``v <- (v + dt (f w + g)) decay; x <- x + dt v`` for every free vertex (``f`` is cleared
-        for the next step), then, in the same thread, the far tests of the path ``x -> x +
-        dt v``; the near pass follows for the listed vertices, whose start positions this
+        ``update`` is the solver's Warp function ``(v, f, inv_mass, gravity, decay, dt) -> v``
+        (symplectic Euler: ``(v + dt (f w + g)) decay``); ``v <- update(...); x <- x + dt v``
+        for every free vertex (``f`` is cleared for the next step), then, in the same thread,
+        the far tests of the path ``x -> x + dt v``; the near pass follows for the listed vertices, whose start positions this
         writes to ``x_start``. One pass over the vertices fewer, and no copy of the start
         positions: the same result as the update followed by `apply` (tests/test_contact.py).
         The explicit solver calls this when the contact is its first correction."""
@@ -324,6 +329,7 @@ class ObstacleContact:
                                "(analytic or mesh)")
         m = self.model
         dt = float(dt)
+        self._update = update
         self._lists = None
         self._poses(state.time, dt, 1)
         head = [state.x, state.v, f, m.inv_mass, gravity, float(decay), dt, x_start]
@@ -331,7 +337,7 @@ class ObstacleContact:
             from .analytic import integrate_contact_kernel
 
             # static spheres and planes: the whole contact inside the vertex update
-            wp.launch(integrate_contact_kernel(self._far_kinds), m.num_vertices,
+            wp.launch(integrate_contact_kernel(self._far_kinds, update), m.num_vertices,
                       [*head[:7], self._analytic_reach, self.thickness, self.slack,
                        int(self.ccd)], device=self.device)
             return
@@ -339,14 +345,14 @@ class ObstacleContact:
             from .analytic import integrate_far_kernel
 
             self._a_count.zero_()
-            wp.launch(integrate_far_kernel(self._far_kinds), m.num_vertices,
+            wp.launch(integrate_far_kernel(self._far_kinds, update), m.num_vertices,
                       [*head, self._analytic_reach, self.thickness, self.slack, int(self.ccd),
                        self._a_count, self._a_list], device=self.device)
         else:
             from .mesh_contact import integrate_mesh_far_kernel
 
             self._m_count.zero_()
-            wp.launch(integrate_mesh_far_kernel(self._mesh_moving), m.num_vertices,
+            wp.launch(integrate_mesh_far_kernel(self._mesh_moving, update), m.num_vertices,
                       [*head, self._mesh_reach, self.thickness, self.slack, int(self.ccd),
                        self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
                        self._m_mask],
@@ -390,6 +396,66 @@ class ObstacleContact:
                        x_start, th, self.slack, ccd, self._cache, self._m_count, self._m_list,
                        self._m_mask, nt, self._m_planes], device=self.device)
         self._lists = (x.ptr, x_start.ptr, dt)
+
+    def detect(self, x, x_start, dt: float, time, margin: float, record) -> None:
+        """Contact planes of every vertex whose path ``x_start -> x`` comes within the reach plus
+        ``margin`` of an obstacle, appended to ``record`` (`warp_cloth.collision.record`) as
+        vertex-obstacle entries whose vertex at ``x`` lies less than ``margin`` above its plane.
+
+        For solvers that take contact into their own solve (implicit Euler, projective
+        dynamics): ``x`` is the step's predicted end (inertia and external forces). The same
+        geometry as `begin_iterations` (exact closest point and continuous test at the predicted
+        position), but from a far pass of its own with the margin, so the first step and fast
+        vertices are covered too. Does not touch the distance caches of `apply` and leaves no
+        list for `project_positions`. ``record.count`` must be zeroed by the caller."""
+        dt = float(dt)
+        self._lists = None
+        if self._a_planes is None and self._m_planes is None:
+            from .planes import make_planes
+
+            n_v = self.model.num_vertices
+            if self.analytic:
+                self._a_planes = make_planes(n_v * len(self.analytic), self.device)
+            if self.meshes:
+                self._m_planes = make_planes(n_v * len(self.meshes), self.device)
+        from .record import planes_to_record_kernel
+
+        m = self.model
+        self._poses(time, dt, 0)
+        th, sl, ccd, nt = self.thickness, self.slack, int(self.ccd), self._near_threads
+        if self._analytic_data is not None:
+            from .analytic import analytic_far_kernel, analytic_planes_kernel
+
+            self._a_count.zero_()
+            self._ai_count.zero_()
+            wp.launch(analytic_far_kernel(self._far_kinds, self._update), m.num_vertices,
+                      [self._analytic_reach, x, x_start, m.inv_mass, th, sl, ccd, self._a_count,
+                       self._a_list, margin, self._ai_count, self._ai_list], device=self.device)
+            wp.launch(analytic_planes_kernel, nt,
+                      [self._analytic_data, self._analytic_reach, self.poses, x, x_start, th, ccd,
+                       self._ai_count, self._ai_list, nt, self._a_planes], device=self.device)
+            pl = self._a_planes
+            wp.launch(planes_to_record_kernel, nt,
+                      [x, pl.point, pl.normal, pl.ref, pl.friction, self.restitution,
+                       len(self.analytic), 0, self._ai_count, self._ai_list, margin, nt, record],
+                      device=self.device)
+        if self._mesh_data is not None:
+            from .mesh_contact import mesh_far_kernel, mesh_planes_kernel
+
+            self._m_count.zero_()
+            wp.launch(mesh_far_kernel(self._mesh_moving, self._update), m.num_vertices,
+                      [self._mesh_reach, x, x_start, m.inv_mass, th, sl, 0, ccd, margin,
+                       self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
+                       self._m_mask], device=self.device)
+            wp.launch(mesh_planes_kernel, nt,
+                      [self._mesh_data, self._mesh_ids, self.poses, len(self.analytic), x,
+                       x_start, th, sl + margin, ccd, self._cache, self._m_count, self._m_list,
+                       self._m_mask, nt, self._m_planes], device=self.device)
+            pl = self._m_planes
+            wp.launch(planes_to_record_kernel, nt,
+                      [x, pl.point, pl.normal, pl.ref, pl.friction, self.restitution,
+                       len(self.meshes), len(self.analytic), self._m_count, self._m_list, margin,
+                       nt, record], device=self.device)
 
     def project_positions(self, x, x_start, dt: float, time=None) -> None:
         """Positions only: continuous test and projection (for position-based iterations).
@@ -435,7 +501,7 @@ class ObstacleContact:
             self._a_count.zero_()
             if margin > 0.0:
                 self._ai_count.zero_()
-            wp.launch(analytic_far_kernel(self._far_kinds), m.num_vertices,
+            wp.launch(analytic_far_kernel(self._far_kinds, self._update), m.num_vertices,
                       [self._analytic_reach, x, x_start, m.inv_mass, th, sl, ccd, self._a_count,
                        self._a_list, margin, self._ai_count, self._ai_list], device=self.device)
         if self._mesh_data is not None:
@@ -444,7 +510,7 @@ class ObstacleContact:
             # no margin for meshes (the iterations reuse this list): a listed vertex that does
             # not touch would pay a BVH query for its plane (measured: PBD +320 % with one)
             self._m_count.zero_()
-            wp.launch(mesh_far_kernel(self._mesh_moving), m.num_vertices,
+            wp.launch(mesh_far_kernel(self._mesh_moving, self._update), m.num_vertices,
                       [self._mesh_reach, x, x_start, m.inv_mass, th, sl, respond, ccd, 0.0,
                        self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
                        self._m_mask],
@@ -456,7 +522,7 @@ class ObstacleContact:
         if self._analytic_data is not None:
             from .analytic import analytic_near_kernel
 
-            wp.launch(analytic_near_kernel(self._far_kinds), self._near_threads,
+            wp.launch(analytic_near_kernel(self._far_kinds, self._update), self._near_threads,
                       [self._analytic_data, self._analytic_reach, self.poses, 0, x, x_start, v,
                        dt, th, sl, respond, ccd, self._a_count, self._a_list,
                        self._near_threads], device=self.device)

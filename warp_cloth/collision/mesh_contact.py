@@ -65,7 +65,7 @@ import numpy as np
 import warp as wp
 
 from .motion import ObstacleData, ObstacleReach
-from ..solvers.explicit import symplectic_velocity
+from .geometry import closest_point_triangle as closest_on_triangle
 from .planes import ContactPlanes
 from .response import contact_outcome, outcome_in_frame
 
@@ -157,40 +157,6 @@ def keep_gap(cache: MeshCache, ci: int, moving: int, x: wp.vec3, g: float):
     cache.gap[ci] = g
     if moving == 0:
         cache.anchor[ci] = x
-
-
-@wp.func
-def closest_on_triangle(a: wp.vec3, b: wp.vec3, c: wp.vec3, p: wp.vec3):
-    """The point of triangle ``abc`` closest to ``p`` (Ericson, *Real-Time Collision Detection*,
-    5.1.5: Voronoi regions of the vertices, edges and face)."""
-    ab = b - a
-    ac = c - a
-    ap = p - a
-    d1 = wp.dot(ab, ap)
-    d2 = wp.dot(ac, ap)
-    if d1 <= 0.0 and d2 <= 0.0:
-        return a
-    bp = p - b
-    d3 = wp.dot(ab, bp)
-    d4 = wp.dot(ac, bp)
-    if d3 >= 0.0 and d4 <= d3:
-        return b
-    vc = d1 * d4 - d3 * d2
-    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        return a + (d1 / (d1 - d3)) * ab
-    cp = p - c
-    d5 = wp.dot(ab, cp)
-    d6 = wp.dot(ac, cp)
-    if d6 >= 0.0 and d5 <= d6:
-        return c
-    vb = d5 * d2 - d1 * d6
-    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        return a + (d2 / (d2 - d6)) * ac
-    va = d3 * d6 - d5 * d4
-    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-        return b + ((d4 - d3) / ((d4 - d3) + (d5 - d6))) * (c - b)
-    denom = 1.0 / (va + vb + vc)
-    return a + (vb * denom) * ab + (vc * denom) * ac
 
 
 @wp.func
@@ -537,31 +503,33 @@ def mesh_vertex_near(
 _KERNELS = {}
 
 
-def mesh_far_kernel(moving):
+def mesh_far_kernel(moving, update=None):
     """The far pass for meshes whose ``moving`` flags are given, one per mesh (a kernel per
     tuple of flags, made on first use, so that the loop over the meshes is unrolled and keeps
     only each mesh's own test; see `warp_cloth.collision.analytic.analytic_far_kernel`)."""
-    return _kernels(moving)[0]
+    return _kernels(moving, update)[0]
 
 
-def integrate_mesh_far_kernel(moving):
-    """Symplectic Euler's vertex update with the far pass of `mesh_far_kernel` in the same
-    thread (`ObstacleContact.integrate_and_apply`)."""
-    return _kernels(moving)[1]
+def integrate_mesh_far_kernel(moving, update):
+    """A solver's vertex update (``update``, see `analytic.integrate_far_kernel`) with the far
+    pass of `mesh_far_kernel` in the same thread (`ObstacleContact.integrate_and_apply`)."""
+    return _kernels(moving, update)[1]
 
 
-def _kernels(moving):
-    key = tuple(bool(m) for m in moving)
+def _kernels(moving, update=None):
+    key = (tuple(bool(m) for m in moving), update)
     kernels = _KERNELS.get(key)
     if kernels is None:
-        kernels = _KERNELS[key] = _make_far_kernels(key)
+        kernels = _KERNELS[key] = _make_far_kernels(key[0], update)
     return kernels
 
 
-def _make_far_kernels(moving):
+def _make_far_kernels(moving, update):
     num = len(moving)
     # the kernels of one tuple in one module (one compile), without the backward pass
     module = "warp_cloth.collision.mesh_contact_moving_" + "".join(str(int(m)) for m in moving)
+    if update is not None:
+        module += "_" + update.key
     wp.set_module_options({"enable_backward": False}, module=module)
     # which meshes move, as constants of the generated code: the unrolled loop keeps only the
     # test each mesh needs (anchor balls for static meshes; the per-step budget for moving ones)
@@ -658,6 +626,9 @@ def _make_far_kernels(moving):
         elif caching and ANY_MOVING != 0:
             last[i] = x1
 
+    if update is None:
+        return far_kernel, None
+
     @wp.kernel(module=module)
     def integrate_far(
         x: wp.array(dtype=wp.vec3),
@@ -679,7 +650,7 @@ def _make_far_kernels(moving):
         near_list: wp.array(dtype=int),
         near_mask: wp.array(dtype=int),
     ):
-        """`integrate_symplectic_kernel`, then `far_kernel`'s tests of the new path (``apply``:
+        """The solver's vertex update (``update``), then `far_kernel`'s tests of the new path (``apply``:
         the cache is used and kept); only a listed vertex's start position is written to
         ``x_start`` (the near pass reads no other)."""
         i = wp.tid()
@@ -689,7 +660,7 @@ def _make_far_kernels(moving):
         if w == 0.0:
             return
         x0 = x[i]
-        vi = symplectic_velocity(v[i], fi, w, gravity, decay, dt)
+        vi = update(v[i], fi, w, gravity, decay, dt)
         x1 = x0 + dt * vi
         v[i] = vi
         x[i] = x1

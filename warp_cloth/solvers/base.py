@@ -1,15 +1,22 @@
-"""What every solver shares: argument checks, scripted pins, corrections, the clock.
+"""What every solver shares: argument checks, scripted pins, corrections, collision, the clock.
 
 A step is composed, in this order, of only the parts the scene uses (GUIDE.md):
 
-    pins to their end-of-step targets -> method (external forces + integrator/solver)
-    -> corrections (strain/area limits, obstacle contact, self-collision) -> time += dt
+    pins to their end-of-step targets -> method (external forces + integrator/solver, which
+    respects the current contact set) -> corrections (strain/area limits)
+    -> collision stage (`warp_cloth.collision.CollisionStage.resolve`: continuous test,
+       projection, impulse) -> time += dt
 
 Each correction changes positions and adds the same change divided by dt to the velocities
 (``v += (x_new - x_old) / dt``, the position-based velocity update of the notes, L1344), so
 velocities stay consistent with the positions. A correction is any object with
-``apply(state, x_start, dt)``, where ``x_start`` holds the positions at the start of the step
-(for continuous collision tests).
+``apply(state, x_start, dt)``, where ``x_start`` holds the positions at the start of the step.
+
+Contact is not a correction: a solver holds at most one `CollisionStage` (``collision``), which
+owns every obstacle of the scene; the method uses it inside its solve (implicit Euler and
+projective dynamics through its contact record, position-based dynamics as constraints in its
+iterations, explicit Euler by running its far tests in the vertex update) and the stage's
+``resolve`` ends the step, after the limits, as the final guarantee.
 """
 
 from __future__ import annotations
@@ -31,60 +38,105 @@ def check_dt(dt) -> float:
     return dt
 
 
+def _as_stage(model, collision):
+    """A `CollisionStage` from a stage, an `ObstacleContact` or obstacles (collision layer)."""
+    from ..collision import CollisionStage, Obstacle, ObstacleContact
+
+    if isinstance(collision, CollisionStage):
+        if collision.model is not model:
+            raise ValueError("the collision stage was built for a different model")
+        return collision
+    if isinstance(collision, ObstacleContact):
+        return CollisionStage(model, collision)
+    if isinstance(collision, Obstacle) or (
+            isinstance(collision, (list, tuple)) and collision
+            and all(isinstance(o, Obstacle) for o in collision)):
+        return CollisionStage(model, collision)
+    raise ValueError(f"collision must be a CollisionStage, an ObstacleContact or a list of "
+                     f"obstacles, got {collision!r}")
+
+
 class Solver:
     """Base class. Subclasses implement ``_advance(state, dt)``.
 
     Args:
         model: the `ClothModel`.
         corrections: objects with ``apply(state, x_start, dt)`` run after the method in the
-            given order (limits, contact, self-collision).
+            given order (strain and area limits). An `ObstacleContact` given here becomes the
+            solver's collision stage instead (as if given as ``collision``).
+        collision: a `warp_cloth.collision.CollisionStage` (or an `ObstacleContact`, or a list
+            of obstacles with default contact options): every contact of the scene.
 
     Attributes:
         capturable: True when a step makes no host decision, so a sequence of steps can be
             recorded as a Warp graph and replayed (the scene runner does this).
+        collision: the `CollisionStage`, or None.
         stats: per-step statistics of the last step (method-specific keys).
     """
 
     name = "solver"
 
-    def __init__(self, model, *, corrections=()):
+    def __init__(self, model, *, corrections=(), collision=None):
         self.model = model
         self.device = model.device
-        self.corrections = [c for c in corrections if c is not None]
-        self.capturable = all(getattr(c, "capturable", True) for c in self.corrections)
+        self.corrections = []
+        self.collision = None
+        self.capturable = True
         self.stats: dict = {}
-        self._x_start = (
-            wp.zeros(model.num_vertices, dtype=wp.vec3, device=self.device)
-            if self.corrections
-            else None
-        )
+        self._x_start = None
+        for c in corrections:
+            if c is not None:
+                self.add_correction(c)
+        if collision is not None:
+            self.set_collision(collision)
 
-    def add_correction(self, c) -> None:
-        self.corrections.append(c)
-        self.capturable = self.capturable and getattr(c, "capturable", True)
+    def _need_start(self):
         if self._x_start is None:
             self._x_start = wp.zeros(self.model.num_vertices, dtype=wp.vec3, device=self.device)
 
-    #: True for a solver whose ``_advance`` can run a first correction that is ``fusable``
-    #: (obstacle contact) as part of its own vertex update (see `fused`)
+    def add_correction(self, c) -> None:
+        """Append a correction (a limit); an `ObstacleContact` or `CollisionStage` becomes the
+        collision stage (`set_collision`), which always runs after the corrections."""
+        from ..collision import CollisionStage, ObstacleContact
+
+        if isinstance(c, (ObstacleContact, CollisionStage)):
+            self.set_collision(c)
+            return
+        if not hasattr(c, "apply"):
+            raise ValueError(f"a correction needs an apply(state, x_start, dt) method, got {c!r}")
+        self.corrections.append(c)
+        self.capturable = self.capturable and getattr(c, "capturable", True)
+        self._need_start()
+
+    def set_collision(self, collision) -> None:
+        """Give the solver its collision stage (one per solver: it owns every obstacle)."""
+        if self.collision is not None:
+            raise ValueError("this solver already has a collision stage; give all obstacles to "
+                             "one CollisionStage (or one ObstacleContact)")
+        self.collision = _as_stage(self.model, collision)
+        self.capturable = self.capturable and self.collision.capturable
+        self._need_start()
+
+    #: True for a solver whose vertex update is a per-vertex Warp function that the collision
+    #: stage can run in its far pass (`fused`); such a solver defines ``vertex_update``
     fuses_contact = False
 
     @property
     def fused(self):
-        """The correction this step runs inside the method's vertex update, or None: the first
-        correction when the solver `fuses_contact` and the correction is ``fusable`` (it would
-        have run first anyway, so the order of corrections is kept)."""
-        if self.fuses_contact and self.corrections and getattr(self.corrections[0], "fusable",
-                                                                 False):
-            return self.corrections[0]
+        """The collision stage this step runs inside the method's vertex update, or None: when
+        the solver `fuses_contact`, the stage is ``fusable`` and no correction must run between
+        the method and the stage (the order of the step is kept)."""
+        c = self.collision
+        if self.fuses_contact and c is not None and not self.corrections and c.fusable:
+            return c
         return None
 
     def step(self, state, dt: float):
         """Advance ``state`` in place by ``dt`` seconds and return it."""
         dt = check_dt(dt)
         m = self.model
-        rest = self.corrections[1:] if self.fused is not None else self.corrections
-        if rest:  # a fused contact writes the start positions it needs itself
+        stage = self.collision if self.fused is None else None
+        if self.corrections or stage is not None:  # a fused stage writes the start itself
             wp.copy(self._x_start, state.x)
         if m.pin_path is not None and len(m.pins):
             wp.launch(
@@ -94,8 +146,10 @@ class Solver:
                 device=self.device,
             )
         self._advance(state, dt)
-        for c in rest:
+        for c in self.corrections:
             c.apply(state, self._x_start, dt)
+        if stage is not None:
+            stage.resolve(state, self._x_start, dt)
         wp.launch(common.advance_time_kernel, 1, [state.time, dt], device=self.device)
         return state
 

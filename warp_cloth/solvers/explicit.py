@@ -55,14 +55,16 @@ class SymplecticEuler(Solver):
 
     Args:
         model: the `ClothModel`.
-        corrections: limits / contact / self-collision passes run after each step. Obstacle
-            contact given first has its far tests run inside the vertex update (`Solver.fused`).
+        corrections: limits run after each step.
+        collision: a `CollisionStage` (obstacles). Without limits, its far tests (and for
+            static spheres and planes the whole contact) run inside the vertex update: the
+            stage's kernels are made with this solver's `symplectic_velocity` (`Solver.fused`).
     """
 
     name = "explicit"
 
-    def __init__(self, model, *, corrections=()):
-        super().__init__(model, corrections=corrections)
+    def __init__(self, model, *, corrections=(), collision=None):
+        super().__init__(model, corrections=corrections, collision=collision)
         self.f = wp.zeros(model.num_vertices, dtype=wp.vec3, device=self.device)
 
     fuses_contact = True
@@ -74,7 +76,7 @@ class SymplecticEuler(Solver):
         fused = self.fused
         if fused is not None:  # obstacle contact's far tests inside the vertex update
             fused.integrate_and_apply(state, self._x_start, self.f, wp.vec3(*m.gravity),
-                                      math.exp(-m.damping * dt), dt)
+                                      math.exp(-m.damping * dt), dt, symplectic_velocity)
             return
         wp.launch(
             integrate_symplectic_kernel,

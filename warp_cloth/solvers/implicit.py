@@ -55,8 +55,12 @@ Warp graph. With tolerances a step reads one float per Newton iteration and per 
 iteration (documented host decisions). ``rho=None`` with Chebyshev measures rho on the first step
 (host work, allocations); the runner captures only from its second frame, after that.
 
-Limitations: no line search by default (``line_search=True`` adds a host-side backtracking
-search on F, not capturable); Newton with the exact Hessian may diverge under compression;
+**Globalisation.** By default each Newton iteration ends with a line search on F done on the
+device (`ls_select_kernel`: four step lengths evaluated in one pass, the largest meeting
+Armijo's condition taken), so every iteration lowers the incremental potential (the notes'
+2.6; T4) without a host read: the step stays capturable.
+
+Limitations: Newton with the exact Hessian may diverge under compression;
 float32 positions put a floor of roughly ``1e-7 max|x| k dt^2/m`` metres under the residual
 (a cloth far from the origin has a higher floor).
 """
@@ -70,6 +74,7 @@ import warp as wp
 
 from ..forces.springs import spring_force
 from .base import Solver
+from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
 from .linear import CGSolver, SpringSystemOperator, make_linear_solver, spring_block_matrix
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -179,6 +184,22 @@ def spring_newton_kernel(
     wp.atomic_sub(b, j, fi)
 
 
+@wp.func
+def vertex_residual(b: wp.vec3, w: float, dt2: float, vblock: wp.array(dtype=wp.mat33), i: int,
+                    contact: int):
+    """``dt^2 b_i / m_i``, the position change the residual force makes in a step; for a vertex
+    with an active contact penalty ``(M/dt^2 + C_i)^-1 b_i`` (``C_i``: the penalty's normal
+    block), so a contact's stiff force is measured by the position change it makes, not by
+    1 + kappa times it (`contact_coupling`). Friction's tangential stiffness is left out: its
+    static branch is so stiff that it would hide any tangential imbalance."""
+    r = (dt2 * w) * b
+    if contact != 0:
+        C = vblock[i]
+        if C[0, 0] + C[1, 1] + C[2, 2] > 0.0:
+            r = wp.inverse(wp.identity(n=3, dtype=float) + (dt2 * w) * C) * r
+    return r
+
+
 @wp.kernel
 def finish_system_kernel(
     diag: wp.array(dtype=wp.mat33),
@@ -191,9 +212,11 @@ def finish_system_kernel(
     dinv: wp.array(dtype=wp.mat33),
     residual: wp.array(dtype=float),
     slot: int,
+    vblock: wp.array(dtype=wp.mat33),
+    contact: int,
 ):
     """Add the spring blocks at i to the diagonal block (gathered over the CSR row), invert it
-    (0 for pins) and measure max_i |dt^2 b_i / m_i| (free only)."""
+    (0 for pins) and measure the residual (free only, `vertex_residual`)."""
     i = wp.tid()
     D = diag[i]
     for q in range(offsets[i], offsets[i + 1]):
@@ -201,7 +224,7 @@ def finish_system_kernel(
     diag[i] = D
     if free[i] > 0.0:
         dinv[i] = wp.inverse(D)
-        r = (dt2 * inv_mass[i]) * b[i]
+        r = vertex_residual(b[i], inv_mass[i], dt2, vblock, i, contact)
         wp.atomic_max(residual, slot, wp.max(wp.abs(r[0]), wp.max(wp.abs(r[1]), wp.abs(r[2]))))
     else:
         dinv[i] = wp.mat33(0.0)
@@ -214,11 +237,13 @@ def residual_only_kernel(
     dt2: float,
     residual: wp.array(dtype=float),
     slot: int,
+    vblock: wp.array(dtype=wp.mat33),
+    contact: int,
 ):
     i = wp.tid()
     w = inv_mass[i]
     if w > 0.0:
-        r = (dt2 * w) * b[i]
+        r = vertex_residual(b[i], w, dt2, vblock, i, contact)
         wp.atomic_max(residual, slot, wp.max(wp.abs(r[0]), wp.max(wp.abs(r[1]), wp.abs(r[2]))))
 
 
@@ -226,15 +251,16 @@ def residual_only_kernel(
 def newton_update_kernel(
     x: wp.array(dtype=wp.vec3),
     dx: wp.array(dtype=wp.vec3),
-    step: float,
+    step: wp.array(dtype=float),
     free: wp.array(dtype=float),
     dx_max: wp.array(dtype=float),
     slot: int,
     disp: wp.array(dtype=wp.vec3),
 ):
+    """x += a dx (a = step[0]: 1, or the device line search's choice)."""
     i = wp.tid()
     if free[i] > 0.0:
-        d = step * dx[i]
+        d = step[0] * dx[i]
         x[i] = x[i] + d
         disp[i] = disp[i] + d
         wp.atomic_max(dx_max, slot, wp.length(d))
@@ -277,6 +303,92 @@ def objective_kernel(
         wp.atomic_add(out, 0, wp.float64(0.5 * scale * mass[i] * wp.dot(d, d) - wp.dot(f_ext[i], x[i])))
 
 
+#: step lengths the device line search tries, largest first (one energy pass evaluates all)
+LS_STEPS = (1.0, 0.5, 0.25, 0.125)
+LS_N = wp.constant(len(LS_STEPS))
+#: Armijo constant of the line search
+LS_ARMIJO = 1.0e-4
+
+
+@wp.kernel
+def ls_vertex_kernel(
+    x: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    disp: wp.array(dtype=wp.vec3),
+    b: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    free: wp.array(dtype=float),
+    f_ext: wp.array(dtype=wp.vec3),
+    scale: float,
+    steps: wp.vec4,
+    x_try: wp.array2d(dtype=wp.vec3),
+    energy: wp.array(dtype=wp.float64),
+):
+    """Line-search candidates ``x + a_j dx`` (rows of ``x_try``) and the inertia and external
+    force part of F at ``x`` (slot 0) and at each candidate (slot j + 1), from the exact
+    increment ``disp = x - x_hat``; ``grad F . dx = -b . dx`` into slot ``LS_N + 1``."""
+    i = wp.tid()
+    xi = x[i]
+    d = dx[i] * free[i]
+    u = disp[i]
+    sm = 0.5 * scale * mass[i]
+    fe = f_ext[i]
+    if free[i] > 0.0:
+        wp.atomic_add(energy, 0, wp.float64(sm * wp.dot(u, u) - wp.dot(fe, xi)))
+        wp.atomic_add(energy, LS_N + 1, wp.float64(-wp.dot(b[i], d)))
+        # the size of the terms, for the float32 noise of F (slot LS_N + 2)
+        wp.atomic_add(energy, LS_N + 2, wp.float64(sm * wp.dot(u, u) + wp.abs(wp.dot(fe, xi))))
+    for j in range(LS_N):
+        a = steps[j]
+        xt = xi + a * d
+        x_try[j, i] = xt
+        if free[i] > 0.0:
+            ut = u + a * d
+            wp.atomic_add(energy, j + 1, wp.float64(sm * wp.dot(ut, ut) - wp.dot(fe, xt)))
+
+
+@wp.kernel
+def ls_spring_kernel(x: wp.array(dtype=wp.vec3), x_try: wp.array2d(dtype=wp.vec3),
+                     springs: wp.array2d(dtype=wp.int32), rest: wp.array(dtype=float),
+                     stiffness: wp.array(dtype=float), energy: wp.array(dtype=wp.float64)):
+    """Spring energy at ``x`` (slot 0) and at each candidate (slot j + 1), float64."""
+    e = wp.tid()
+    i = springs[e, 0]
+    j = springs[e, 1]
+    k = wp.float64(0.5) * wp.float64(stiffness[e])
+    L = wp.float64(rest[e])
+    s = wp.float64(wp.length(x[i] - x[j])) - L
+    wp.atomic_add(energy, 0, k * s * s)
+    wp.atomic_add(energy, LS_N + 2, k * s * s + wp.float64(stiffness[e]) * L * wp.abs(s))
+    for c in range(LS_N):
+        st = wp.float64(wp.length(x_try[c, i] - x_try[c, j])) - L
+        wp.atomic_add(energy, c + 1, k * st * st)
+
+
+@wp.kernel
+def ls_select_kernel(energy: wp.array(dtype=wp.float64), steps: wp.vec4, armijo: float,
+                     chosen: wp.array(dtype=float), slot: int, record: wp.array(dtype=float)):
+    """The largest step whose F meets Armijo's condition ``F <= F0 + c a grad F . dx`` (up to
+    the float32 noise of F); if none does, the step of the lowest F (the smallest one when all rise: float32 noise near a
+    minimum). Written to ``chosen[0]`` (read by the update) and ``record[slot]``."""
+    f0 = energy[0]
+    slope = wp.min(energy[LS_N + 1], wp.float64(0.0))
+    # F is summed in float64 from float32 terms: differences below ~1e-6 of the terms' size
+    # are noise, and near convergence Armijo's decrease is smaller than that
+    noise = wp.float64(1.0e-6) * energy[LS_N + 2]
+    best = int(-1)
+    for j in range(LS_N):
+        if best < 0 and energy[j + 1] <= f0 + wp.float64(armijo * steps[j]) * slope + noise:
+            best = j
+    if best < 0:
+        best = LS_N - 1
+        for j in range(LS_N):
+            if energy[j + 1] < energy[best + 1]:
+                best = j
+    chosen[0] = steps[best]
+    record[slot] = steps[best]
+
+
 @wp.kernel
 def axpy_copy_kernel(src: wp.array(dtype=wp.vec3), dx: wp.array(dtype=wp.vec3), step: float,
                      dst: wp.array(dtype=wp.vec3)):
@@ -291,6 +403,12 @@ def spring_energy64_kernel(x: wp.array(dtype=wp.vec3), springs: wp.array2d(dtype
     e = wp.tid()
     s = wp.float64(wp.length(x[springs[e, 0]] - x[springs[e, 1]])) - wp.float64(rest[e])
     wp.atomic_add(out, 0, wp.float64(0.5) * wp.float64(stiffness[e]) * s * s)
+
+
+@wp.kernel
+def add_float32_kernel(src: wp.array(dtype=float), dst: wp.array(dtype=wp.float64)):
+    j = wp.tid()
+    dst[j] = dst[j] + wp.float64(src[j])
 
 
 @wp.kernel
@@ -387,13 +505,21 @@ class ImplicitEuler(Solver):
             larger values mean fewer host reads).
         initial_guess: ``"inertial"`` (``x0 + dt v0 + dt^2 f_ext/m``, note 001:L26-44) or
             ``"start"`` (``x0``; with one Newton iteration this is Baraff-Witkin's step).
-        line_search: backtracking (Armijo) line search on F after each solve: halves the step
-            until F decreases, up to 8 times. Host reads; not capturable.
+        line_search: after each solve, take the largest of the steps 1, 1/2, 1/4, 1/8 along
+            ``dx`` whose F meets Armijo's condition (all four evaluated in one pass on the
+            device, chosen there: no host read, capturable), else the one of lowest F. Default
+            True: each Newton iteration then lowers the incremental potential, which keeps
+            Newton from overshooting with stiff springs, compression and friction.
         trace: record per-Newton-iteration ``F``, residual and ``max |dx|`` in
             ``stats["trace"]`` (host reads; for study and tests).
         measure_residual: in fixed-iteration mode, evaluate the residual after the last update
             (one extra gradient evaluation per step, read only when ``stats`` is read).
-        corrections: limits / contact / self-collision passes run after each step.
+        contact_stiffness: ``kappa`` of the contact term inside the Newton solve, its
+            stiffness over the inertia block ``m/dt^2`` (default 1e3;
+            `warp_cloth.solvers.contact_coupling`).
+        corrections: limits run after each step.
+        collision: a `CollisionStage`: its contacts enter every Newton iteration (detected once
+            per step from the predicted positions), and its ``resolve`` ends the step.
 
     Attributes:
         default_substeps: 2 solver steps per frame (used by the scene runner when no substep
@@ -423,9 +549,10 @@ class ImplicitEuler(Solver):
                  linear_tolerance: float | None = ..., exact_hessian: bool = False,
                  rho: float | None = None, alpha: float = 0.66, delay: int = 5,
                  check_every: int | None = None, initial_guess: str = "inertial",
-                 line_search: bool = False, trace: bool = False, measure_residual: bool = False,
-                 corrections=()):
-        super().__init__(model, corrections=corrections)
+                 line_search: bool = True, trace: bool = False, measure_residual: bool = False,
+                 contact_stiffness: float = DEFAULT_CONTACT_STIFFNESS,
+                 corrections=(), collision=None):
+        super().__init__(model, corrections=corrections, collision=collision)
         if int(newton_iterations) != newton_iterations or newton_iterations < 1:
             raise ValueError(f"implicit: newton_iterations must be a positive integer, got "
                              f"{newton_iterations!r}")
@@ -493,16 +620,37 @@ class ImplicitEuler(Solver):
         self._iterate = None  # the positions array whose x - x_hat is tracked exactly in disp
         self.residuals = wp.zeros(self.newton_iterations + 1, dtype=wp.float32, device=d)
         self.dx_max = wp.zeros(self.newton_iterations + 1, dtype=wp.float32, device=d)
-        if self.line_search or self.trace:
+        if self.trace:
             self._x_try = wp.zeros(n, dtype=wp.vec3, device=d)
             self._obj = wp.zeros(1, dtype=wp.float64, device=d)
             self._obj32 = wp.zeros(1, dtype=wp.float32, device=d)
+        self._one = wp.ones(1, dtype=float, device=d)
+        if self.line_search:
+            self._ls_try = wp.zeros((len(LS_STEPS), n), dtype=wp.vec3, device=d)
+            self._ls_energy = wp.zeros(len(LS_STEPS) + 3, dtype=wp.float64, device=d)
+            self._ls_energy32 = wp.zeros(len(LS_STEPS) + 1, dtype=wp.float32, device=d)
+            self._ls_views = [self._ls_energy32[j:j + 1] for j in range(len(LS_STEPS) + 1)]
+            self._ls_step = wp.ones(1, dtype=float, device=d)
+            self._ls_taken = wp.zeros(self.newton_iterations, dtype=float, device=d)
         # Chebyshev with rho=None measures rho on the first step (host work): the scene runner
         # captures from its second frame on, after that.
         self.capturable = (self.capturable and tolerance is None and self.linear.capturable
-                           and not self.line_search and not self.trace)
+                           and not self.trace)
         self._stats = {}
         self._lazy = None
+        self.contact_stiffness = float(contact_stiffness)
+        ContactCoupling._check(self.contact_stiffness)
+        self._coupling = None
+
+    def _contact(self):
+        """The contact coupling of the current collision stage (made on first use), or None."""
+        if self.collision is None:
+            self.A.vertex_blocks = None
+            return None
+        if self._coupling is None or self._coupling.stage is not self.collision:
+            self._coupling = ContactCoupling(self.model, self.collision, self.contact_stiffness)
+        self.A.vertex_blocks = self._coupling.vblock
+        return self._coupling
 
     # ------------------------------------------------------------------ statistics
     @property
@@ -511,6 +659,9 @@ class ImplicitEuler(Solver):
             slot = self._lazy
             self._lazy = None
             self._stats["residual"] = float(self.residuals.numpy()[slot])
+        if self._coupling is not None and "contacts" not in self._stats:
+            self._stats.update(self.collision.stats)
+            self._stats["contacts_active"] = int(self._coupling.active.numpy()[0])
         return self._stats
 
     @stats.setter
@@ -518,7 +669,7 @@ class ImplicitEuler(Solver):
         self._stats = value
 
     # ------------------------------------------------------------------ assembly
-    def _assemble(self, x, slot: int, hessian: bool = True):
+    def _assemble(self, x, slot: int, hessian: bool = True, contact: bool = True):
         """b = -grad F(x), the Newton matrix at x (blocks, diagonal, inverse) and the residual."""
         m, d, A = self.model, self.device, self.A
         n = m.num_vertices
@@ -532,15 +683,19 @@ class ImplicitEuler(Solver):
                        0 if self.exact_hessian else 1, self.b, A.slots, A.coef], device=d)
         for t in self.implicit_terms:
             t.eval_with_hessian(x, self.b)
+        vb = (A.diag_inv, 0)  # (any mat33 array, flag): no contact term
+        if contact and self._coupling is not None and self.collision is not None:
+            self._coupling.add_newton(x, self.b, A.diag, self._dt)
+            vb = (self._coupling.nblock, 1)
         if hessian:
             for t in self.implicit_terms:
                 t.add_diagonal(A.diag)
             wp.launch(finish_system_kernel, n,
                       [A.diag, A.offsets, A.coef, self.b, m.inv_mass, A.free, self._dt2, A.diag_inv,
-                       self.residuals, slot], device=d)
+                       self.residuals, slot, *vb], device=d)
         else:
-            wp.launch(residual_only_kernel, n, [self.b, m.inv_mass, self._dt2, self.residuals, slot],
-                      device=d)
+            wp.launch(residual_only_kernel, n,
+                      [self.b, m.inv_mass, self._dt2, self.residuals, slot, *vb], device=d)
 
     def objective(self, x) -> float:
         """F(x) for the current step (after `step` began it): host read, for tests and study."""
@@ -559,6 +714,8 @@ class ImplicitEuler(Solver):
             self._obj32.zero_()
             t.energy(x, self._obj32)
             wp.launch(to_float64_kernel, 1, [self._obj32, self._obj], device=d)
+        if self._coupling is not None and self.collision is not None:
+            self._coupling.energy(x, self._obj, self._dt)
         return float(self._obj.numpy()[0])
 
     def _measure_rho(self):
@@ -587,6 +744,7 @@ class ImplicitEuler(Solver):
         n = m.num_vertices
         self._scale = 1.0 / (dt * dt)
         self._dt2 = dt * dt
+        self._dt = dt
         self.A.mass_scale = self._scale
         for t in self.explicit_terms:
             t.eval(state.x, state.v, self.f_ext, state.time)
@@ -594,6 +752,14 @@ class ImplicitEuler(Solver):
                   [state.x, state.v, m.mass, m.inv_mass, wp.vec3(*m.gravity), dt,
                    1 if self.initial_guess == "inertial" else 0, self.f_ext, self.x_prev,
                    self.x_hat, self.disp], device=d)
+        coupling = self._contact()
+        if coupling is not None:  # the step's contacts, from the predicted path
+            pred = state.x if self.initial_guess == "inertial" else self.x_hat
+            coupling.detect(self.x_prev, pred, dt, state.time)
+            # the forces at the guess without contact (b = f(x) + f_ext - M/dt^2 (x - x_hat)):
+            # friction's initial guess balances them
+            self._assemble(state.x, 0, hessian=False, contact=False)
+            coupling.friction_guess(state.x, self.disp, dt, self.b)
         self.residuals.zero_()
         self.dx_max.zero_()
         K = self.newton_iterations
@@ -607,10 +773,15 @@ class ImplicitEuler(Solver):
         measured = False  # residual of the final iterate known?
         residual = float("nan")
         for k in range(K):
-            self._assemble(x, k)
             if self.linear_name in ("jacobi", "chebyshev") and self._rho_dt != dt:
+                # measured without the contact term: it can only lower the Jacobi iteration's
+                # spectral radius (contact_coupling), so the bound holds with any contact set
+                blocks, self.A.vertex_blocks = self.A.vertex_blocks, None
+                self._assemble(x, k, contact=False)
                 self._measure_rho()
                 self._rho_dt = dt
+                self.A.vertex_blocks = blocks
+            self._assemble(x, k)
             if check or trace is not None:
                 r = float(self.residuals.numpy()[k])
                 if trace is not None:
@@ -620,9 +791,10 @@ class ImplicitEuler(Solver):
                     break
             info = self.linear.solve(self.A, self.b, self.dx)
             inner += self.linear.iterations if fixed else int(info["iterations"])
-            step = 1.0
+            step = self._one
             if self.line_search:
-                step = self._line_search(x)
+                self._line_search(x, k)
+                step = self._ls_step
             wp.launch(newton_update_kernel, n,
                       [x, self.dx, step, self.A.free, self.dx_max, k, self.disp],
                       device=d)
@@ -631,7 +803,7 @@ class ImplicitEuler(Solver):
                 moved = float(self.dx_max.numpy()[k])
                 if trace is not None:
                     trace[-1]["dx"] = moved
-                    trace[-1]["step"] = step
+                    trace[-1]["step"] = float(step.numpy()[0])
                 if check and moved < self.step_tolerance:
                     break  # stagnated (float32 floor): more iterations cannot lower the residual
         lazy = None
@@ -647,6 +819,8 @@ class ImplicitEuler(Solver):
         wp.launch(end_step_kernel, n,
                   [x, self.x_prev, m.inv_mass, 1.0 / dt, math.exp(-m.damping * dt), state.v,
                    self.f_ext, self.disp], device=d)
+        if coupling is not None:
+            coupling.end_step(x, state.v, dt)
         self._stats = {"newton_iterations": done, "inner_iterations": inner,
                        "residual": residual,
                        "converged": bool(check and residual < self.tolerance), "linear_residual": info["residual"],
@@ -668,7 +842,7 @@ class ImplicitEuler(Solver):
         """
         m = self.model
         self._iterate = state.x
-        self._scale, self._dt2 = 1.0 / (dt * dt), dt * dt
+        self._scale, self._dt2, self._dt = 1.0 / (dt * dt), dt * dt, dt
         self.A.mass_scale = self._scale
         self.f_ext.zero_()
         for t in self.explicit_terms:
@@ -681,20 +855,33 @@ class ImplicitEuler(Solver):
         self._assemble(state.x, 0)
         return self.A, self.b
 
-    def _line_search(self, x) -> float:
-        """Backtracking on F along dx (Armijo with c = 1e-4): host reads."""
-        f0 = self.objective(x)
-        # directional derivative: grad F . dx = -b . dx
-        bb, dd, free = self.b.numpy(), self.dx.numpy(), self.A.free.numpy()
-        slope = -float(np.sum(bb.astype(np.float64) * dd * free[:, None]))
-        step = 1.0
-        for _ in range(8):
-            wp.launch(axpy_copy_kernel, self.model.num_vertices, [x, self.dx, step, self._x_try],
-                      device=self.device)
-            if self.objective(self._x_try) <= f0 + 1e-4 * step * min(slope, 0.0):
-                return step
-            step *= 0.5
-        return step
+    def _line_search(self, x, k: int) -> None:
+        """Device line search along ``dx`` (`ls_vertex_kernel`, `ls_spring_kernel`, the force
+        terms' and the contact term's energies at ``x`` and at the candidates,
+        `ls_select_kernel`): the chosen step goes to ``_ls_step`` (and ``_ls_taken[k]``)."""
+        m, d, n = self.model, self.device, self.model.num_vertices
+        steps = wp.vec4(*LS_STEPS)
+        E = self._ls_energy
+        E.zero_()
+        wp.launch(ls_vertex_kernel, n,
+                  [x, self.dx, self.disp, self.b, m.mass, self.A.free, self.f_ext, self._scale,
+                   steps, self._ls_try, E], device=d)
+        if m.num_springs:
+            wp.launch(ls_spring_kernel, m.num_springs,
+                      [x, self._ls_try, m.spring_indices, m.spring_rest_length, m.spring_k, E],
+                      device=d)
+        configs = [x] + [self._ls_try[j] for j in range(len(LS_STEPS))]
+        if self.implicit_terms:
+            self._ls_energy32.zero_()
+            for t in self.implicit_terms:
+                for j, xc in enumerate(configs):
+                    t.energy(xc, self._ls_views[j])
+            wp.launch(add_float32_kernel, len(configs), [self._ls_energy32, E], device=d)
+        if self._coupling is not None and self.collision is not None:
+            for j, xc in enumerate(configs):
+                self._coupling.energy(xc, E, self._dt, j)
+        wp.launch(ls_select_kernel, 1, [E, steps, LS_ARMIJO, self._ls_step, k, self._ls_taken],
+                  device=d)
 
     def describe(self) -> str:
         it = f"{self.newton_iterations} Newton"

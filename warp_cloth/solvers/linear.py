@@ -423,6 +423,37 @@ def _spring_cg_direction_kernel(z: wp.array(dtype=wp.vec3), mass: wp.array(dtype
 
 
 @wp.kernel
+def _spring_matvec_vb_kernel(x: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
+                             scale: float, offsets: wp.array(dtype=wp.int32),
+                             other: wp.array(dtype=wp.int32), coef: wp.array(dtype=wp.vec4),
+                             vblock: wp.array(dtype=wp.mat33), out: wp.array(dtype=wp.vec3)):
+    """`_spring_matvec_kernel` plus a per-vertex block (the contact term's Hessian)."""
+    i = wp.tid()
+    out[i] = spring_row_apply(x, i, scale, mass, offsets, other, coef) + vblock[i] * x[i]
+
+
+@wp.kernel
+def _spring_cg_direction_vb_kernel(z: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
+                                   scale: float, offsets: wp.array(dtype=wp.int32),
+                                   other: wp.array(dtype=wp.int32),
+                                   coef: wp.array(dtype=wp.vec4), vblock: wp.array(dtype=wp.mat33),
+                                   free: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
+                                   ap: wp.array(dtype=wp.vec3), rz: wp.array(dtype=wp.float64),
+                                   pap: wp.array(dtype=wp.float64), k: int):
+    """`_spring_cg_direction_kernel` plus a per-vertex block (the contact term's Hessian)."""
+    i = wp.tid()
+    pi = z[i]
+    api = spring_row_apply(z, i, scale, mass, offsets, other, coef) + vblock[i] * pi
+    if k > 0:
+        beta = _cg_beta(rz, k)
+        pi = pi + beta * p[i]
+        api = api + beta * ap[i]
+    p[i] = pi
+    ap[i] = api
+    wp.atomic_add(pap, k, wp.float64(wp.dot(pi, api) * free[i]))
+
+
+@wp.kernel
 def _diag_init_kernel(mass: wp.array(dtype=float), scale: float, diag: wp.array(dtype=wp.mat33)):
     i = wp.tid()
     diag[i] = (scale * mass[i]) * wp.identity(n=3, dtype=float)
@@ -497,7 +528,10 @@ class SpringSystemOperator:
     array (``mat33``, written with atomics).
 
     ``extra`` terms (e.g. bending) provide ``matvec_add(x, out)`` and ``add_diagonal(diag)``.
-    Call `update` after changing the blocks, the extra terms or ``mass_scale``.
+    ``vertex_blocks`` (None, or a ``mat33`` array per vertex) adds a block-diagonal term inside
+    the same gather (the contact term of `warp_cloth.solvers.contact_coupling`; its owner also
+    adds it to ``diag``). Call `update` after changing the blocks, the extra terms or
+    ``mass_scale``.
     Pinned vertices (``model.inv_mass == 0``) are eliminated.
     """
 
@@ -520,6 +554,7 @@ class SpringSystemOperator:
         self.diag_inv = wp.zeros(self.n, dtype=wp.mat33, device=d)
         free = (model.inverse_masses > 0).astype(np.float32)
         self.free = wp.array(free, dtype=wp.float32, device=d)
+        self.vertex_blocks = None
 
     def fill_laplacian(self):
         """``H_e = k_e I`` for every spring (the projective-dynamics / Liu 2013 matrix)."""
@@ -548,8 +583,14 @@ class SpringSystemOperator:
 
     def matvec(self, x, out):
         m, d = self.model, self.device
-        wp.launch(_spring_matvec_kernel, self.n,
-                  [x, m.mass, self.mass_scale, self.offsets, self.other, self.coef, out], device=d)
+        if self.vertex_blocks is not None:
+            wp.launch(_spring_matvec_vb_kernel, self.n,
+                      [x, m.mass, self.mass_scale, self.offsets, self.other, self.coef,
+                       self.vertex_blocks, out], device=d)
+        else:
+            wp.launch(_spring_matvec_kernel, self.n,
+                      [x, m.mass, self.mass_scale, self.offsets, self.other, self.coef, out],
+                      device=d)
         for t in self.extra:
             t.matvec_add(x, out)
 
@@ -558,6 +599,11 @@ class SpringSystemOperator:
         Returns False (nothing done) when extra terms make the fused form unavailable."""
         if self.extra:
             return False
+        if self.vertex_blocks is not None:
+            wp.launch(_spring_cg_direction_vb_kernel, self.n,
+                      [z, self.model.mass, self.mass_scale, self.offsets, self.other, self.coef,
+                       self.vertex_blocks, self.free, p, ap, rz, pap, k], device=self.device)
+            return True
         wp.launch(_spring_cg_direction_kernel, self.n,
                   [z, self.model.mass, self.mass_scale, self.offsets, self.other, self.coef,
                    self.free, p, ap, rz, pap, k], device=self.device)

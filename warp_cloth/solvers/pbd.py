@@ -278,8 +278,8 @@ class PositionBased(Solver):
 
     def __init__(self, model, *, iterations: int = 10, gauss_seidel: bool = False,
                  compliance=None, relaxation: float = 0.0, bending_compliance=None,
-                 corrections=()):
-        super().__init__(model, corrections=corrections)
+                 corrections=(), collision=None):
+        super().__init__(model, corrections=corrections, collision=collision)
         if isinstance(iterations, bool) or int(iterations) != iterations or iterations < 1:
             raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
         self.iterations = int(iterations)
@@ -345,7 +345,7 @@ class PositionBased(Solver):
     # ------------------------------------------------------------------ pieces
     @property
     def _projectors(self):
-        return [c for c in self.corrections if hasattr(c, "project_positions")]
+        return [self.collision] if self.collision is not None else []
 
     def _iterate(self, x, v, dt, iterations, finish_velocity):
         """``iterations`` projection iterations on ``x``; returns True if it set ``v`` too."""

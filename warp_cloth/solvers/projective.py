@@ -67,6 +67,7 @@ import numpy as np
 import warp as wp
 
 from .base import Solver
+from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
 from .linear import LINEAR_SOLVERS, estimate_spectral_radius, make_linear_solver
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -199,6 +200,25 @@ def pd_matvec_kernel(
 
 
 @wp.kernel
+def pd_matvec_vb_kernel(
+    x: wp.array(dtype=wp.vec3),
+    diag: wp.array(dtype=float),
+    offsets: wp.array(dtype=wp.int32),
+    neighbors: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=float),
+    vblock: wp.array(dtype=wp.mat33),
+    out: wp.array(dtype=wp.vec3),
+):
+    """`pd_matvec_kernel` plus a per-vertex block (the contact constraints' matrix)."""
+    i = wp.tid()
+    xi = x[i]
+    acc = diag[i] * xi + vblock[i] * xi
+    for p in range(offsets[i], offsets[i + 1]):
+        acc = acc - weights[p] * x[neighbors[p]]
+    out[i] = acc
+
+
+@wp.kernel
 def pd_diag_kernel(diag: wp.array(dtype=float), blocks: wp.array(dtype=wp.mat33)):
     i = wp.tid()
     blocks[i] = diag[i] * wp.identity(n=3, dtype=float)
@@ -255,6 +275,8 @@ class PDSystemOperator:
         self.blocks = wp.zeros(n, dtype=wp.mat33, device=d)
         self.diag_inv = wp.zeros(n, dtype=wp.mat33, device=d)
         self.free = wp.array((model.inverse_masses > 0).astype(np.float32), dtype=wp.float32, device=d)
+        #: None, or a mat33 per vertex added to A (contact; its owner updates ``diag_inv``)
+        self.vertex_blocks = None
         self.mass_scale = None
         self.update(mass_scale)
 
@@ -269,8 +291,14 @@ class PDSystemOperator:
                   device=self.device)
 
     def matvec(self, x, out):
-        wp.launch(pd_matvec_kernel, self.n,
-                  [x, self.diag, self.offsets, self.neighbors, self.weights, out], device=self.device)
+        if self.vertex_blocks is not None:
+            wp.launch(pd_matvec_vb_kernel, self.n,
+                      [x, self.diag, self.offsets, self.neighbors, self.weights,
+                       self.vertex_blocks, out], device=self.device)
+        else:
+            wp.launch(pd_matvec_kernel, self.n,
+                      [x, self.diag, self.offsets, self.neighbors, self.weights, out],
+                      device=self.device)
         for t in self.extra:
             t.matvec_add(x, out)
 
@@ -335,7 +363,12 @@ class ProjectiveDynamics(Solver):
             precomputed on the host in float64 (meshes up to ``direct_max_vertices``); one host
             round trip per iteration, so not capturable. ``linear`` is then unused.
         direct_max_vertices: refuse ``direct`` above this many vertices (memory ~ 8 n^2 bytes).
-        corrections: limits / contact passes run after each step (`Solver.add_correction`).
+        contact_stiffness: ``kappa`` of the contact constraints, their weight over the inertia
+            block ``m/dt^2`` (default 1e3; `warp_cloth.solvers.contact_coupling`).
+        corrections: limits run after each step (`Solver.add_correction`).
+        collision: a `CollisionStage`: its contacts are constraints of every local step (their
+            projection onto the free half-space) and their blocks enter the global matrix, so
+            the global step sees contact; the stage's ``resolve`` ends the step.
 
     Attributes:
         default_substeps: 3 per frame at 60 fps (one step per frame is stable too, but an
@@ -354,8 +387,9 @@ class ProjectiveDynamics(Solver):
                  alpha: float | None = None, rho: float | None = None, rho_safety: float = 0.99,
                  delay: int = 2, outer_rho: float | None = None, outer_delay: int = 2,
                  direct: bool = False, direct_max_vertices: int = 4000,
-                 corrections=()):
-        super().__init__(model, corrections=corrections)
+                 contact_stiffness: float = DEFAULT_CONTACT_STIFFNESS,
+                 corrections=(), collision=None):
+        super().__init__(model, corrections=corrections, collision=collision)
         if isinstance(iterations, bool) or int(iterations) != iterations or iterations < 1:
             raise ValueError(f"pd: iterations must be a positive integer, got {iterations!r}")
         if linear not in LINEAR_SOLVERS:
@@ -426,6 +460,16 @@ class ProjectiveDynamics(Solver):
         self._free_idx = np.flatnonzero(m.inverse_masses > 0)
         self._last_info = None
         self._stepped = False
+        self.contact_stiffness = ContactCoupling._check(contact_stiffness)
+        self._coupling = None
+
+    def _contact(self):
+        """The contact coupling of the current collision stage (made on first use), or None."""
+        if self.collision is None:
+            return None
+        if self._coupling is None or self._coupling.stage is not self.collision:
+            self._coupling = ContactCoupling(self.model, self.collision, self.contact_stiffness)
+        return self._coupling
 
     def _outer_omegas(self):
         """Wang 2015's Chebyshev weights over the outer iterations (1 when ``outer_rho`` is None)."""
@@ -483,6 +527,13 @@ class ProjectiveDynamics(Solver):
         inv_dt2 = 1.0 / (dt * dt)
         wp.launch(pd_predict_kernel, n,
                   [state.x, state.v, m.inv_mass, wp.vec3(*m.gravity), dt, self.x0, self.y], device=d)
+        cc = self._contact()
+        A.vertex_blocks = cc.vblock if cc is not None else None
+        if cc is not None:  # the step's contacts, from the predicted path
+            cc.detect(self.x0, state.x, dt, state.time)
+            # friction's guess from inertia alone (self.f is zero here; dx is scratch): with the
+            # spring forces of an under-converged step in it, sliding cloth measured 20 % slow
+            cc.friction_guess(state.x, self.dx, dt, self.f)
         self._objective.zero_()
         self._gradient.zero_()
         if self.energy_terms:
@@ -496,25 +547,43 @@ class ProjectiveDynamics(Solver):
                            self.f, self._objective, k], device=d)
             for t in self.matrix_terms + self.explicit_terms:
                 t.eval(state.x, state.v, self.f, state.time)
+            if cc is not None:  # contact projections, and their blocks in this global matrix
+                cc.pd_local(state.x, self.f, self._objective, k, dt)
+                if not self.direct:
+                    cc.invert_diagonal(A.blocks, A.free, A.diag_inv)
             for t in self.energy_terms:
                 t.energy(state.x, self._energy_views[k])
             wp.launch(pd_rhs_kernel, n,
                       [state.x, self.y, m.mass, A.free, inv_dt2, self.f, self.b, self.dx,
                        self._objective, self._gradient, k], device=d)
             if self.direct:
-                self._solve_direct()
+                self._solve_direct(cc)
             else:
                 self._last_info = self.linear.solve(A, self.b, self.dx)
             wp.launch(pd_update_kernel, n,
                       [state.x, self.dx, self.x0, state.v, m.inv_mass, decay, 1.0 / dt,
                        1 if k == K - 1 else 0, self._omegas[k], self.x_prev], device=d)
+        if cc is not None:
+            cc.end_step(state.x, state.v, dt)
         self._stepped = True
 
-    def _solve_direct(self):
-        """Host decision by design: dx_f = S_ff^-1 b_f for the three components (float64)."""
+    def _solve_direct(self, cc=None):
+        """Host decision by design: dx_f = S_ff^-1 b_f for the three components (float64).
+
+        With contact blocks ``sum u u^T`` (rank one each, on one vertex), by the Woodbury
+        identity: ``(S (x) I + U U^T)^-1 b = y - Z (I + U^T Z)^-1 U^T y``, ``y = S^-1 b``,
+        ``Z = (S^-1 (x) I) U`` (one small dense solve per iteration)."""
         f = self._free_idx
         b = self.b.numpy()
-        self._bhost[f] = (self._Sinv @ b[f].astype(np.float64)).astype(np.float32)
+        y = self._Sinv @ b[f].astype(np.float64)
+        if cc is not None:
+            rows, U = cc.host_factors(f)
+            if len(rows):
+                Si = self._Sinv[:, rows]  # (F, r)
+                G = self._Sinv[np.ix_(rows, rows)] * (U @ U.T)  # U^T Z
+                coef = np.linalg.solve(np.eye(len(rows)) + G, np.einsum("rc,rc->r", U, y[rows]))
+                y = y - (Si * coef[None, :]) @ U
+        self._bhost[f] = y.astype(np.float32)
         self.dx.assign(self._bhost)
 
     # ------------------------------------------------------------------ statistics
@@ -537,6 +606,7 @@ class ProjectiveDynamics(Solver):
             "gradient_norm": np.sqrt(self._gradient.numpy()).tolist(),
             "linear_residual": info.get("residual", float("nan")),
             "rho": self.rho,
+            **(self.collision.stats if self._coupling is not None else {}),
         }
 
     @stats.setter

@@ -1,0 +1,238 @@
+"""The collision stage (issue 12): a layer below the solvers, obstacles given once, one contact
+record, contact respected inside the implicit and projective-dynamics solves, the stage after the
+limits, and every contact scene plausible with every solver."""
+
+import ast
+import os
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_cloth
+from warp_cloth import Scene, make_solver
+from warp_cloth.collision import CollisionStage, ObstacleContact, Plane, Sphere
+from warp_cloth.collision.record import KIND_VERTEX_OBSTACLE, KIND_VERTEX_TRIANGLE, make_record
+from warp_cloth.contact_scenes import sheet_model
+from warp_cloth.limits import StrainLimit
+from warp_cloth.solvers.contact_coupling import ContactCoupling
+
+PKG = os.path.dirname(os.path.abspath(warp_cloth.__file__))
+ABOVE = {"solvers", "scene", "scenes", "contact_scenes", "cli", "bench", "usd"}
+
+
+def test_collision_layer_imports_nothing_above_it():
+    bad = []
+    folder = os.path.join(PKG, "collision")
+    for name in sorted(os.listdir(folder)):
+        if not name.endswith(".py"):
+            continue
+        tree = ast.parse(open(os.path.join(folder, name), encoding="utf-8").read())
+        for node in ast.walk(tree):
+            mods = []
+            if isinstance(node, ast.ImportFrom):
+                if node.level >= 2:
+                    mods.append((node.module or "").split(".")[0])
+                elif node.level == 0 and (node.module or "").startswith("warp_cloth."):
+                    mods.append(node.module.split(".")[1])
+            elif isinstance(node, ast.Import):
+                mods += [a.name.split(".")[1] for a in node.names
+                         if a.name.startswith("warp_cloth.")]
+            bad += [f"{name}: {m}" for m in mods if m in ABOVE]
+    assert not bad, bad
+
+
+# ------------------------------------------------------------------ obstacles given once
+def test_obstacles_given_only_to_the_scene_are_simulated_and_drawn(tmp_path):
+    from pxr import Usd, UsdGeom
+
+    model = sheet_model(res=6, size=0.5, height=0.6)
+    ball = Sphere(0.2, (0.0, 0.3, 0.0), name="ball")
+    solver = make_solver("explicit", model)
+    scene = Scene(model, solver, frames=40, obstacles=[ball])
+    assert solver.collision is not None and solver.collision.obstacles == [ball]
+    out = tmp_path / "once.usd"
+    scene.run(out, quiet=True, energy=False)
+    stage = Usd.Stage.Open(str(out))
+    assert any(p.GetName() == "ball" for p in stage.Traverse())
+    phi = ball.signed_distance(scene.state.positions(), scene.state.t)
+    assert phi.min() >= solver.collision.thickness - 1e-4  # it did not fall through
+
+
+def test_obstacles_are_given_in_one_place():
+    model = sheet_model(res=4)
+    a, b = Sphere(0.2, (0, 0.3, 0)), Plane()
+    solver = make_solver("implicit", model, collision=CollisionStage(model, [a]))
+    with pytest.raises(ValueError, match="not in the solver's collision stage"):
+        Scene(model, solver, obstacles=[b])
+    Scene(model, solver, obstacles=[a])  # the same obstacle again is fine
+    with pytest.raises(ValueError, match="already has a collision stage"):
+        solver.add_correction(ObstacleContact(model, [b]))
+    with pytest.raises(ValueError, match="collision must be"):
+        make_solver("pd", model, collision="sphere")
+    with pytest.raises(ValueError, match="solve_margin"):
+        CollisionStage(model, [a], solve_margin=-1.0)
+    other = sheet_model(res=3)
+    with pytest.raises(ValueError, match="different model"):
+        make_solver("explicit", model, collision=CollisionStage(other, [a]))
+
+
+# ------------------------------------------------------------------ the contact term
+def _record(entries, device="cpu"):
+    """A record from (kind, vertices, weights, normal, offset, ref, mu) tuples."""
+    rec = make_record(len(entries), device)
+    rec.count.assign(np.array([len(entries)], dtype=np.int32))
+    rec.vertex.assign(np.array([e[1] for e in entries], dtype=np.int32))
+    rec.weight.assign(np.array([e[2] for e in entries], dtype=np.float32))
+    rec.normal.assign(np.array([e[3] for e in entries], dtype=np.float32))
+    rec.offset.assign(np.array([e[4] for e in entries], dtype=np.float32))
+    rec.ref.assign(np.array([e[5] for e in entries], dtype=np.float32))
+    rec.friction.assign(np.array([e[6] for e in entries], dtype=np.float32))
+    rec.kind.assign(np.array([e[0] for e in entries], dtype=np.int32))
+    return rec
+
+
+class _Stage:
+    def __init__(self, rec, n_obstacles):
+        self.record = rec
+        self.capacity = rec.vertex.shape[0]
+        self.obstacles = [None] * n_obstacles
+
+
+def test_contact_term_force_and_hessian_match_finite_differences():
+    """-grad E_c (penalty + friction in both branches, multi-vertex entries) and, for
+    single-vertex entries, the Hessian block against central differences of the energy."""
+    model = sheet_model(res=2, size=0.2)  # 9 vertices
+    n = model.num_vertices
+    rng = np.random.default_rng(1)
+    x = rng.normal(scale=0.05, size=(n, 3))
+    nrm = np.array([0.3, 1.0, -0.2]) / np.linalg.norm([0.3, 1.0, -0.2])
+    dt = 1.0 / 100.0
+    eps = 1e-4 * dt
+    ent = []
+    # vertex 0: penetrating, sliding branch; vertex 1: penetrating, static branch;
+    # vertex 2: separated, friction only (lam from the last step); a vertex-triangle entry
+    for i, (depth, slide) in enumerate([(2e-3, 5e-3), (1e-3, 0.3 * eps), (-1e-3, 2e-3)]):
+        t = np.cross(nrm, [1.0, 0.0, 0.0])
+        t /= np.linalg.norm(t)
+        ref = x[i] - slide * t - 0.01 * nrm
+        ent.append((KIND_VERTEX_OBSTACLE, [i, -1, -1, -1], [1, 0, 0, 0], nrm,
+                    float(nrm @ x[i] + depth), ref, 0.4))
+    w = [1.0, -0.2, -0.5, -0.3]
+    vt_point = w[0] * x[3] + w[1] * x[4] + w[2] * x[5] + w[3] * x[6]
+    ent.append((KIND_VERTEX_TRIANGLE, [3, 4, 5, 6], w, nrm, float(nrm @ vt_point + 1e-3),
+                np.zeros(3), 0.0))
+    rec = _record(ent)  # every entry from obstacle 0
+    cc = ContactCoupling(model, _Stage(rec, 1), stiffness=1e3)
+    lam = np.zeros(n, dtype=np.float32)
+    lam[:3] = [2e-3, 1e-3, 1.5e-3]
+    cc.lam.assign(lam)
+
+    def energy(xh):
+        out = wp.zeros(1, dtype=wp.float64, device="cpu")
+        cc.energy(wp.array(xh.astype(np.float32), dtype=wp.vec3, device="cpu"), out, dt)
+        return float(out.numpy()[0])
+
+    xa = wp.array(x.astype(np.float32), dtype=wp.vec3, device="cpu")
+    b = wp.zeros(n, dtype=wp.vec3, device="cpu")
+    diag = wp.zeros(n, dtype=wp.mat33, device="cpu")
+    cc.add_newton(xa, b, diag, dt)
+    force = b.numpy().astype(np.float64)
+    assert int(cc.active.numpy()[0]) == 4
+    x = xa.numpy().astype(np.float64)
+    h = 2e-7
+    for i in [0, 1, 2, 3, 4, 5, 6]:
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[i, c] += h
+            xm[i, c] -= h
+            fd = -(energy(xp) - energy(xm)) / (2 * h)
+            # per vertex: friction forces (1e-4 N) are far below the penalty's (1 N)
+            assert force[i, c] == pytest.approx(fd, rel=2e-2, abs=2e-2 * np.abs(force[i]).max())
+    # Hessian of vertex 0 (sliding) and 2 (friction only): FD of the force
+    for i in (0, 2):
+        H = diag.numpy()[i].astype(np.float64)
+        J = np.zeros((3, 3))
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[i, c] += 1e-6
+            xm[i, c] -= 1e-6
+            fp, fm = wp.zeros(n, dtype=wp.vec3, device="cpu"), wp.zeros(n, dtype=wp.vec3,
+                                                                          device="cpu")
+            d2 = wp.zeros(n, dtype=wp.mat33, device="cpu")
+            cc.add_newton(wp.array(xp.astype(np.float32), dtype=wp.vec3, device="cpu"), fp, d2, dt)
+            cc.add_newton(wp.array(xm.astype(np.float32), dtype=wp.vec3, device="cpu"), fm, d2, dt)
+            J[:, c] = -(fp.numpy()[i] - fm.numpy()[i]) / 2e-6
+        np.testing.assert_allclose(H, J, rtol=5e-2, atol=2e-2 * np.abs(J).max())
+
+
+# ------------------------------------------------------------------ inside the solve
+@pytest.mark.parametrize("solver_name", ["implicit", "pd"])
+def test_solve_itself_respects_contact(solver_name):
+    """After the solve and before the stage's resolve, a sheet falling fast onto a sphere and a
+    floor is already outside them (the old after-the-solve correction left it centimetres in)."""
+    model = sheet_model(res=8, size=0.6, height=0.45)
+    st = model.state()
+    st.v.assign(np.tile([0.0, -3.0, 0.0], (model.num_vertices, 1)).astype(np.float32))
+    stage = CollisionStage(model, [Sphere(0.15, (0.0, 0.2, 0.0)), Plane()])
+    solver = make_solver(solver_name, model, collision=stage)
+    worst = []
+    resolve = stage.resolve
+
+    def check(state, x_start, dt):
+        phi = stage.signed_distances(state.positions(), float(state.time.numpy()[0]) + dt)
+        worst.append(stage.thickness - phi.min())
+        resolve(state, x_start, dt)
+
+    stage.resolve = check
+    for _ in range(40):
+        solver.step(st, 1.0 / 120.0)
+    assert max(worst) < 2e-3, f"{max(worst) * 1e3:.2f} mm inside the thickness before resolve"
+    assert stage.stats["contact_overflow"] == 0 and stage.stats["contacts"] > 0
+
+
+@pytest.mark.parametrize("solver_name", ["explicit", "implicit", "pbd", "pd"])
+def test_stage_runs_after_the_limits(solver_name):
+    """The stage ends the step after any strain limit, so a limit cannot push a vertex into an
+    obstacle (issue 12: pd + StrainLimit left a vertex 1.2 cm inside a sphere)."""
+    model = sheet_model(res=10, size=0.8, height=0.55)
+    ball = Sphere(0.25, (0.0, 0.25, 0.0))
+    solver = make_solver(solver_name, model, corrections=[StrainLimit(model, 0.0, 1.01)],
+                         collision=[ball])
+    scene = Scene(model, solver, frames=50)
+    worst = []
+    scene.run(None, quiet=True, energy=False, on_frame=lambda f, s: worst.append(
+        ball.signed_distance(s.positions(), s.t).min()))
+    assert min(worst) >= solver.collision.thickness - 1e-4
+
+
+# ------------------------------------------------------------------ scenes, every solver
+@pytest.fixture(scope="module")
+def table_runs():
+    from warp_cloth.contact_scenes import table
+    from warp_cloth.diagnostics import Meter
+
+    out = {}
+    for name in ("explicit", "implicit", "pbd", "pd"):
+        scene = table(solver=name, res=14, frames=75)
+        meter = Meter(scene.model)
+        rec = {"strain": [], "E": [], "phi": []}
+
+        def on_frame(f, st, scene=scene, meter=meter, rec=rec):
+            m = meter(st, energy=True)
+            rec["strain"].append(m.max_strain)
+            rec["E"].append(m.energy)
+            rec["phi"].append(scene.collision.signed_distances(st.positions(), st.t).min())
+
+        scene.run(None, quiet=True, on_frame=on_frame)
+        out[name] = rec
+    return out
+
+
+@pytest.mark.parametrize("solver_name", ["implicit", "pbd", "pd"])
+def test_table_scene_plausible_with_every_solver(table_runs, solver_name):
+    ref, run = table_runs["explicit"], table_runs[solver_name]
+    assert max(run["strain"]) <= max(1.5 * max(ref["strain"]), 0.05)
+    assert min(run["phi"]) >= 0.005 - 1e-4
+    rise = np.diff(run["E"]).max()
+    assert rise < 2e-3, f"energy rose by {rise:.2e} J in a frame (static obstacles)"

@@ -1,0 +1,152 @@
+"""`CollisionStage`: every contact source of a scene in one object, below the solvers.
+
+    from warp_cloth.collision import CollisionStage, Sphere, Plane
+
+    stage = CollisionStage(model, [Sphere(0.3, (0, 0.5, 0)), Plane()], friction=0.5)
+    solver = make_solver("implicit", model, collision=stage)
+    Scene(model, solver).run("out.usd")        # the obstacles are simulated and drawn
+
+The stage owns the obstacles (given once: the scene runner draws ``solver.collision.obstacles``)
+and the `ContactRecord` (`warp_cloth.collision.record`), and offers each kind of solver what it
+needs, through one interface:
+
+- ``detect(x_start, x_pred, dt, time)``: before a solve, the contacts of the step's predicted
+  path into ``record`` (one linear constraint ``n . sum w_j x_j >= offset`` per entry). Implicit
+  Euler and projective dynamics read the record inside their solve (`warp_cloth.solvers.
+  contact_coupling`), so their iterations converge to a state that satisfies contact and springs
+  together.
+- ``begin_iterations`` / ``project_positions``: contact planes projected inside position-based
+  iterations (`ObstacleContact`).
+- ``resolve(state, x_start, dt)``: after the solve and the limits, the final guarantee: the
+  continuous test of every vertex's whole path, projection to the thickness, and the impulse
+  with restitution and Coulomb friction. After it every free vertex is at least ``thickness -
+  PENETRATION_TOLERANCE`` from every obstacle.
+- ``fusable`` / ``integrate_and_apply(..., update)``: a solver whose vertex update is a
+  per-vertex function (symplectic Euler) may pass that function to be run in the same pass as
+  the far tests (the collision layer knows nothing of the solver; the solver hands it its
+  update, `warp_cloth.solvers.explicit`).
+
+Self-collision (vertex-triangle and edge-edge pairs of the cloth itself) plugs in as a second
+source: its pairs go into the same record with barycentric weights, and its response runs in
+``resolve``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import warp as wp
+
+from .contact import ObstacleContact
+from .obstacles import Obstacle
+from .record import make_record
+
+__all__ = ["CollisionStage", "DEFAULT_SOLVE_MARGIN"]
+
+#: m; a vertex whose predicted path comes this far beyond the contact thickness of an obstacle
+#: gets a constraint in the record (the solve may move it that much off its prediction)
+DEFAULT_SOLVE_MARGIN = 0.01
+
+
+class CollisionStage:
+    """All contact of a scene: the obstacles, the contact record, detection and response.
+
+    Args:
+        model: the `ClothModel`.
+        obstacles: `Plane`, `Sphere`, `Box`, `MeshObstacle` instances (at least one), or an
+            `ObstacleContact` already built on ``model``.
+        solve_margin: m, >= 0; how far beyond the thickness a predicted path may pass an
+            obstacle and still get a constraint for the solve (default 0.01 m).
+        **contact_options: `ObstacleContact` options (``thickness``, ``friction``,
+            ``restitution``, ``ccd``, ``slack``, ...), when ``obstacles`` are shapes.
+
+    Attributes:
+        obstacles: the obstacles (the scene writes them to the USD stage).
+        contact: the `ObstacleContact` (obstacle source).
+        record: the `ContactRecord` that `detect` fills.
+        capturable: True (no host decision in any call).
+    """
+
+    capturable = True
+
+    def __init__(self, model, obstacles, *, solve_margin: float = DEFAULT_SOLVE_MARGIN,
+                 **contact_options):
+        if isinstance(obstacles, ObstacleContact):
+            if contact_options:
+                raise ValueError("CollisionStage: give contact options to the ObstacleContact, "
+                                 f"not to the stage ({sorted(contact_options)})")
+            if obstacles.model is not model:
+                raise ValueError("CollisionStage: the ObstacleContact was built for a different "
+                                 "model")
+            contact = obstacles
+        else:
+            if isinstance(obstacles, Obstacle):
+                obstacles = [obstacles]
+            contact = ObstacleContact(model, obstacles, **contact_options)
+        try:
+            solve_margin = float(solve_margin)
+        except (TypeError, ValueError):
+            raise ValueError(f"solve_margin must be a number of metres, got {solve_margin!r}") \
+                from None
+        if not (math.isfinite(solve_margin) and solve_margin >= 0):
+            raise ValueError(f"solve_margin must be >= 0 metres, got {solve_margin}")
+        self.model = model
+        self.device = model.device
+        self.contact = contact
+        self.solve_margin = solve_margin
+        # one vertex-obstacle entry per (vertex, obstacle) at most
+        self.capacity = model.num_vertices * len(contact.obstacles)
+        self.record = make_record(self.capacity, self.device)
+
+    # ------------------------------------------------------------------ what it holds
+    @property
+    def obstacles(self) -> list:
+        return list(self.contact.obstacles)
+
+    @property
+    def thickness(self) -> float:
+        return self.contact.thickness
+
+    # ------------------------------------------------------------------ detection
+    def detect(self, x_start, x_pred, dt: float, time) -> None:
+        """Fill `record` with the constraints of the predicted paths ``x_start -> x_pred``
+        (``time``: the device clock at the step's start). Capturable: counts stay on the device."""
+        self.record.count.zero_()
+        self.contact.detect(x_pred, x_start, dt, time, self.solve_margin, self.record)
+
+    # ------------------------------------------------------------------ response
+    def resolve(self, state, x_start, dt: float) -> None:
+        """The final guarantee after the solve and the limits (`ObstacleContact.apply`)."""
+        self.contact.apply(state, x_start, dt)
+
+    # position-based iterations
+    def begin_iterations(self, x, x_start, dt: float, time=None) -> None:
+        self.contact.begin_iterations(x, x_start, dt, time)
+
+    def project_positions(self, x, x_start, dt: float, time=None) -> None:
+        self.contact.project_positions(x, x_start, dt, time)
+
+    # a solver's vertex update fused with the far tests
+    @property
+    def fusable(self) -> bool:
+        return self.contact.fusable
+
+    def integrate_and_apply(self, state, x_start, f, gravity, decay, dt, update) -> None:
+        self.contact.integrate_and_apply(state, x_start, f, gravity, decay, dt, update)
+
+    # ------------------------------------------------------------------ reports
+    @property
+    def stats(self) -> dict:
+        """Entries of the last `detect` and entries dropped for capacity (host reads)."""
+        count = int(self.record.count.numpy()[0])
+        return {"contacts": min(count, self.capacity),
+                "contact_overflow": int(self.record.overflow.numpy()[0])}
+
+    def max_penetration(self, state) -> float:
+        return self.contact.max_penetration(state)
+
+    def signed_distances(self, positions, t: float):
+        return self.contact.signed_distances(positions, t)
+
+    def __repr__(self):
+        return f"CollisionStage({self.contact!r}, solve_margin={self.solve_margin:g} m)"

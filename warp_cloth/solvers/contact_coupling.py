@@ -1,0 +1,490 @@
+"""Contact inside an implicit solve: the collision stage's record as a stiff term of the objective.
+
+Implicit Euler (Newton) and projective dynamics minimise the incremental potential
+``F(x) = 1/(2 dt^2) ||x - y||_M^2 + E(x)`` (``physics.md`` 2.3). With contact, every entry of the
+stage's `ContactRecord` (one linear constraint ``g(x) = n . sum_j w_j x_{v_j} - offset >= 0``,
+`warp_cloth.collision.record`) adds a one-sided quadratic penalty
+
+    E_c(x) = k_c / 2 * min(g(x), 0)^2,      k_c = kappa * m_eff / dt^2,  1/m_eff = sum_j w_j^2 / m_j
+
+so that the minimiser satisfies springs and contact together: a constraint pushed against by a
+force ``f`` is violated by ``|f| dt^2 / (kappa m_eff)``, i.e. by 1/kappa of how far that force would
+move the vertex in one step (``kappa = 1e3``: 0.7 um for a vertex resting under gravity at
+dt = 1/120 s). Scaling by the mass and ``1/dt^2`` keeps the term's share of the system matrix the
+same at every mass and step (``kappa`` times the inertia block), which keeps the block-Jacobi
+preconditioner and Chebyshev's ``rho`` valid: adding a positive semi-definite block-diagonal term
+to the diagonal can only lower the spectral radius of the Jacobi iteration (Rayleigh quotients).
+
+- **Newton** (`ImplicitEuler`): gradient ``-k_c g w_j n`` into the right-hand side and Hessian
+  ``k_c w_j^2 n n^T`` into each vertex's diagonal block and into the operator's per-vertex blocks
+  (`linear.SpringSystemOperator.vertex_blocks`), where ``g < 0`` (the active set is re-evaluated
+  at every Newton iterate: ``E_c`` is C^1 and piecewise quadratic). Entries with several
+  vertices (vertex-triangle, edge-edge) get their diagonal blocks only, a positive semi-definite
+  approximation of the Hessian (Newton stays a descent method).
+- **Projective dynamics** (`ProjectiveDynamics`): the constraint's projection is the closest
+  point of the half-space ``g >= 0``; its force ``-k_c min(g, 0) w_j n`` enters every local step
+  and its matrix ``k_c w_j^2 n n^T`` (constant over a step's iterations, whether the entry is
+  active or not) enters the global matrix as per-vertex blocks, so the global step sees contact.
+
+**Friction** (vertex-obstacle entries, Coulomb coefficient ``mu_T``) is part of the same solve,
+as in Incremental Potential Contact (Li et al. 2020): the smoothed Coulomb potential
+``mu lam f0(|u|)`` of the tangential displacement ``u`` relative to the surface over the step
+(``u`` = tangential part of ``x - ref``, ``ref`` the start position carried by the obstacle's
+motion), with ``f0' = f1``, ``f1(y) = 2y/eps - y^2/eps^2`` below ``eps = friction_velocity * dt``
+and 1 above it (a static branch that is a stiff spring, a sliding branch that is a constant
+force), and the normal force ``lam`` fixed for the step: the larger of the last step's final
+``k_c |g|`` and ``m |g| / dt^2`` at the prediction (the force that stops the predicted
+penetration within the step: a vertex's weight when it rests, the impact when it arrives). With
+``lam`` fixed the potential is convex and Newton's line search applies. Its Hessian is exact in
+both branches (none along ``u`` while sliding). Newton's model of static friction is very stiff,
+so the initial guess places each vertex on the branch it will likely end on
+(`friction_guess_kernel`); this matters for a solve stopped by a tolerance (a vertex left on
+the sliding branch near sticking has a force imbalance below the tolerance and would creep) and
+for projective dynamics, which converges slowly on whole-cloth motion.
+
+After the solve, a vertex within ``slack`` of one of its planes leaves the step with no normal
+velocity towards it (restitution ``mu_N`` times it away), so the stage's impulse, which then sees
+no approach, adds no second friction. The normal forces of the final iterate are kept for the
+next step's friction.
+
+The record is filled once per step by `CollisionStage.detect` from the predicted positions; the
+stage's ``resolve`` after the solve stays as the final guarantee (continuous test, projection to
+the thickness, and the impulse for vertices the solve did not hold).
+
+Limitation (measured, ``warp-cloth run table --solver pd``): projective dynamics at its default
+10 iterations per step does not propagate sliding through a cloth held by static friction over
+a large area: the table scene's sheet (mu_T = 0.15, 55 % overhanging) stays on the table, where
+explicit, position-based and implicit Euler let it slide off.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from ..collision.record import KIND_VERTEX_OBSTACLE, ContactRecord
+
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
+__all__ = ["ContactCoupling", "DEFAULT_CONTACT_STIFFNESS", "DEFAULT_FRICTION_VELOCITY", "BATCH"]
+
+#: kappa: the contact term's stiffness over the inertia block ``m/dt^2``
+DEFAULT_CONTACT_STIFFNESS = 1.0e3
+#: m/s; friction's smoothing speed (IPC's eps_v): static friction holds a vertex to this creep
+DEFAULT_FRICTION_VELOCITY = 1.0e-4
+#: record entries per thread (a thread costs its set-up on the CPU whether its entries exist)
+BATCH = 16
+
+
+@wp.func
+def entry_gap(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
+              inv_mass: wp.array(dtype=float)):
+    """``g`` of entry ``e`` at ``x`` and ``1/m_eff`` (0 when every vertex of it is pinned)."""
+    vid = rec.vertex[e]
+    w = rec.weight[e]
+    n = rec.normal[e]
+    g = -rec.offset[e]
+    im = float(0.0)
+    for j in range(4):
+        v = vid[j]
+        if v >= 0:
+            g = g + w[j] * wp.dot(n, x[v])
+            im = im + w[j] * w[j] * inv_mass[v]
+    return g, im
+
+
+@wp.func
+def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
+                   inv_mass: wp.array(dtype=float), kappa_dt2: float, eps: float,
+                   lam: wp.array(dtype=float), num_sources: int):
+    """Entry ``e`` at ``x``: (active, force on the weighted point ``sum w_j x_j``, its 3x3
+    Hessian block, energy). Normal: the penalty where ``g < 0``; tangential (vertex-obstacle
+    entries with ``mu_T > 0`` whose vertex presses on the obstacle): smoothed Coulomb friction
+    with the normal force ``lam`` fixed for the step (`friction_guess_kernel`; module doc)."""
+    g, im = entry_gap(rec, e, x, inv_mass)
+    on = bool(False)
+    f = wp.vec3(0.0)
+    H = wp.mat33(0.0)
+    E = float(0.0)
+    if im <= 0.0:
+        return on, f, H, E
+    n = rec.normal[e]
+    nn = wp.outer(n, n)
+    if g < 0.0:
+        k = kappa_dt2 / im
+        on = True
+        f = (-k * g) * n
+        H = k * nn
+        E = 0.5 * k * g * g
+    mu = rec.friction[e]
+    if mu > 0.0 and rec.kind[e] == KIND_VERTEX_OBSTACLE:
+        i = rec.vertex[e][0]
+        lam_i = lam[i * num_sources + rec.source[e]]
+        if lam_i > 0.0:
+            on = True
+            d = x[i] - rec.ref[e]
+            u = d - wp.dot(d, n) * n
+            y = wp.length(u)
+            T = wp.identity(n=3, dtype=float) - nn
+            uu = wp.mat33(0.0)
+            if y > 0.0:
+                uu = wp.outer(u, u) / (y * y)
+            c = float(0.0)
+            if y < eps:
+                # f1(y) = 2y/eps - y^2/eps^2: Hessian mu lam (f1'(y) uu^T + f1(y)/y (T - uu^T))
+                c = mu * lam_i * (2.0 / eps - y / (eps * eps))
+                E = E + mu * lam_i * (y * y / eps - y * y * y / (3.0 * eps * eps) + eps / 3.0)
+                H = H + (mu * lam_i * (2.0 / eps - 2.0 * y / (eps * eps))) * uu + c * (T - uu)
+            else:
+                # sliding: a constant force mu lam against u, no stiffness along u. Newton without
+                # a line search overshoots between sliding and sticking with it (measured: the
+                # drape diverged): the implicit solver's line search and friction's initial
+                # guess (`friction_guess_kernel`) keep it from doing so
+                c = mu * lam_i / y
+                E = E + mu * lam_i * y
+                H = H + c * (T - uu)
+            f = f - c * u
+    return on, f, H, E
+
+
+@wp.kernel
+def normal_force_kernel(
+    rec: ContactRecord,
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    kappa_dt2: float,
+    num_threads: int,
+    num_sources: int,
+    lam: wp.array(dtype=float),
+):
+    """The normal force ``k_c |g|`` of each active vertex-obstacle entry at ``x`` (the end of the
+    solve) into ``lam[vertex * num_sources + obstacle]``: the next step's friction bound."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        if rec.kind[e] != KIND_VERTEX_OBSTACLE:
+            continue
+        g, im = entry_gap(rec, e, x, inv_mass)
+        if g < 0.0 and im > 0.0:
+            wp.atomic_add(lam, rec.vertex[e][0] * num_sources + rec.source[e], -kappa_dt2 / im * g)
+
+
+@wp.kernel
+def newton_contact_kernel(
+    rec: ContactRecord,
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    kappa_dt2: float,
+    eps: float,
+    lam: wp.array(dtype=float),
+    num_sources: int,
+    num_threads: int,
+    b: wp.array(dtype=wp.vec3),
+    diag: wp.array(dtype=wp.mat33),
+    vblock: wp.array(dtype=wp.mat33),
+    nblock: wp.array(dtype=wp.mat33),
+    active: wp.array(dtype=int),
+):
+    """Active entries: their force ``-grad E_c`` into ``b``; their blocks into ``diag`` and
+    ``vblock`` (``w_j^2 H``), the normal penalty's alone into ``nblock`` (for the residual);
+    the number of active entries into ``active[0]``."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        on, f, H, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources)
+        if on:
+            vid = rec.vertex[e]
+            w = rec.weight[e]
+            g, im = entry_gap(rec, e, x, inv_mass)
+            Hn = wp.mat33(0.0)
+            if g < 0.0:
+                Hn = (kappa_dt2 / im) * wp.outer(rec.normal[e], rec.normal[e])
+            for j in range(4):
+                v = vid[j]
+                if v >= 0 and inv_mass[v] > 0.0:
+                    wp.atomic_add(b, v, w[j] * f)
+                    h = (w[j] * w[j]) * H
+                    wp.atomic_add(diag, v, h)
+                    wp.atomic_add(vblock, v, h)
+                    wp.atomic_add(nblock, v, (w[j] * w[j]) * Hn)
+            wp.atomic_add(active, 0, 1)
+
+
+@wp.kernel
+def friction_guess_kernel(
+    rec: ContactRecord,
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    num_sources: int,
+    dt2: float,
+    f_drive: wp.array(dtype=wp.vec3),
+    num_threads: int,
+    disp: wp.array(dtype=wp.vec3),
+):
+    """Friction's normal force for the step, and the initial guess of a vertex that friction
+    can hold this step. The force: the larger of the last step's and ``m |g| / dt^2`` at the
+    prediction. The guess: if static friction can hold the vertex where it started against the
+    inertia of its predicted sliding ``u`` (tangential part of ``x - ref``) and the other forces
+    ``f_drive`` at the prediction (``|u m / dt^2 + f_drive|_T <= mu lam``), it starts from
+    ``ref`` tangentially (sticking); else from its prediction, shortened by what the full
+    friction force cancels in a step (``mu lam dt^2 / m``). Newton's model of static friction
+    is very stiff, so a vertex that sticks must start there; one that slides must not (the
+    secant Hessian of the sliding branch would take many iterations to leave it). Newton and projective dynamics then correct only what the springs change:
+    projective dynamics converges slowly on whole-cloth (low-frequency) motion, so a guess
+    without friction left its sliding cloth almost frictionless."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        mu = rec.friction[e]
+        if rec.kind[e] != KIND_VERTEX_OBSTACLE or mu <= 0.0:
+            continue
+        i = rec.vertex[e][0]
+        w = inv_mass[i]
+        if w <= 0.0:
+            continue
+        # the normal force that stops the predicted penetration within the step, m |g| / dt^2
+        # (the impact on the step a vertex arrives, its weight when it rests), if larger than
+        # the last step's
+        slot = i * num_sources + rec.source[e]
+        g = wp.dot(rec.normal[e], x[i]) - rec.offset[e]
+        lam_i = lam[slot]
+        if g < 0.0:
+            lam_i = wp.max(lam_i, -g / (dt2 * w))
+            lam[slot] = lam_i
+        if lam_i <= 0.0:
+            continue
+        n = rec.normal[e]
+        d = x[i] - rec.ref[e]
+        u = d - wp.dot(d, n) * n  # predicted sliding (inertia, gravity)
+        # the tangential force friction must supply to hold the vertex where it started,
+        # the others at their predictions: inertia of the predicted sliding plus the rest
+        F = u / (dt2 * w) + f_drive[i]
+        F = F - wp.dot(F, n) * n
+        target = wp.vec3(0.0)  # sticks
+        if wp.length(F) > mu * lam_i:
+            # slides: its prediction, slowed by what the full friction force cancels in a step
+            y = wp.length(u)
+            cap = mu * lam_i * dt2 * w
+            target = u
+            if y > 0.0:
+                target = (1.0 - wp.min(cap, y) / y) * u
+        wp.atomic_add(x, i, target - u)
+        wp.atomic_add(disp, i, target - u)
+
+
+@wp.kernel
+def contact_energy_kernel(
+    rec: ContactRecord,
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    kappa_dt2: float,
+    eps: float,
+    lam: wp.array(dtype=float),
+    num_sources: int,
+    num_threads: int,
+    out: wp.array(dtype=wp.float64),
+    slot: int,
+):
+    """``E_c(x)`` (with the friction potential) into ``out[slot]`` (float64)."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        on, f, H, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources)
+        if on:
+            wp.atomic_add(out, slot, wp.float64(E))
+
+
+@wp.kernel
+def pd_contact_kernel(
+    rec: ContactRecord,
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    kappa_dt2: float,
+    eps: float,
+    lam: wp.array(dtype=float),
+    num_sources: int,
+    num_threads: int,
+    f_out: wp.array(dtype=wp.vec3),
+    vblock: wp.array(dtype=wp.mat33),
+    objective: wp.array(dtype=wp.float64),
+    slot: int,
+):
+    """Local step of the contact constraints: the projection onto ``g >= 0`` gives the force
+    ``-k_c min(g, 0) w_j n`` (and friction); the blocks ``w_j^2 H`` into ``vblock`` for this
+    iteration's global matrix; ``E_c`` into the objective."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        on, f, H, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources)
+        if on:
+            vid = rec.vertex[e]
+            w = rec.weight[e]
+            for j in range(4):
+                v = vid[j]
+                if v >= 0 and inv_mass[v] > 0.0:
+                    wp.atomic_add(f_out, v, w[j] * f)
+                    wp.atomic_add(vblock, v, (w[j] * w[j]) * H)
+            wp.atomic_add(objective, slot, wp.float64(E))
+
+
+@wp.kernel
+def block_inverse_kernel(blocks: wp.array(dtype=wp.mat33), vblock: wp.array(dtype=wp.mat33),
+                         free: wp.array(dtype=float), dinv: wp.array(dtype=wp.mat33)):
+    """``dinv = (blocks + vblock)^-1`` for free vertices (0 for pins)."""
+    i = wp.tid()
+    if free[i] > 0.0:
+        dinv[i] = wp.inverse(blocks[i] + vblock[i])
+    else:
+        dinv[i] = wp.mat33(0.0)
+
+
+@wp.kernel
+def contact_velocity_kernel(
+    rec: ContactRecord,
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    inv_dt: float,
+    slack: float,
+    num_threads: int,
+    v: wp.array(dtype=wp.vec3),
+):
+    """After the solve: a vertex within ``slack`` of its plane leaves the step with
+    its normal velocity relative to the surface, ``n . (x - ref) / dt``, no longer approaching:
+    ``-mu_N`` times it (the solve already stopped its position; its friction acted inside the
+    solve, so the stage's impulse, which sees no approach, adds none)."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        if rec.kind[e] != KIND_VERTEX_OBSTACLE:
+            continue
+        i = rec.vertex[e][0]
+        if inv_mass[i] <= 0.0:
+            continue
+        n = rec.normal[e]
+        xi = x[i]
+        if wp.dot(n, xi) - rec.offset[e] < slack:  # touching, as the stage's impulse counts it
+            vn = wp.dot(n, xi - rec.ref[e]) * inv_dt
+            if vn < 0.0:
+                wp.atomic_add(v, i, (-(1.0 + rec.restitution[e]) * vn) * n)
+
+
+class ContactCoupling:
+    """A solver's view of its collision stage's record as the stiff term ``E_c`` (module doc).
+
+    Args:
+        model: the `ClothModel`.
+        stage: the `CollisionStage`.
+        stiffness: ``kappa`` (> 0), the term's stiffness over the inertia block ``m/dt^2``.
+        friction_velocity: m/s, > 0: the relative sliding speed below which friction is a stiff
+            spring rather than a constant force (the smoothing ``eps = friction_velocity * dt``
+            of the Coulomb law; a vertex held by static friction creeps at most this fast).
+    """
+
+    @staticmethod
+    def _check(stiffness, name="contact_stiffness") -> float:
+        try:
+            stiffness = float(stiffness)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} must be a number, got {stiffness!r}") from None
+        if not (math.isfinite(stiffness) and stiffness > 0):
+            raise ValueError(f"{name} must be > 0, got {stiffness}")
+        return stiffness
+
+    def __init__(self, model, stage, stiffness: float = DEFAULT_CONTACT_STIFFNESS,
+                 friction_velocity: float = DEFAULT_FRICTION_VELOCITY):
+        self.model = model
+        self.stage = stage
+        self.kappa = self._check(stiffness)
+        self.friction_velocity = self._check(friction_velocity, "friction_velocity")
+        self.device = model.device
+        self.vblock = wp.zeros(model.num_vertices, dtype=wp.mat33, device=self.device)
+        self.nblock = wp.zeros(model.num_vertices, dtype=wp.mat33, device=self.device)
+        self.active = wp.zeros(1, dtype=int, device=self.device)
+        self.threads = max(1, -(-stage.capacity // BATCH))
+        self.sources = len(stage.obstacles)
+        # normal force per (vertex, obstacle) at the end of the last step: friction's bound
+        self.lam = wp.zeros(model.num_vertices * self.sources, dtype=float, device=self.device)
+
+    @property
+    def record(self):
+        return self.stage.record
+
+    def _args(self, dt):
+        return (self.kappa / (dt * dt), self.friction_velocity * dt, self.lam, self.sources,
+                self.threads)
+
+    def detect(self, x_start, x_pred, dt: float, time) -> None:
+        """The record for this step (`CollisionStage.detect`), and the active count cleared."""
+        self.stage.detect(x_start, x_pred, dt, time)
+        self.active.zero_()
+
+    # ------------------------------------------------------------------ Newton
+    def add_newton(self, x, b, diag, dt: float) -> None:
+        """Active entries' force into ``b`` and Hessian blocks into ``diag`` and `vblock`
+        (which this clears first: call once per Newton assembly, after ``diag`` is set)."""
+        self.vblock.zero_()
+        self.nblock.zero_()
+        self.active.zero_()
+        wp.launch(newton_contact_kernel, self.threads,
+                  [self.record, x, self.model.inv_mass, *self._args(dt), b, diag, self.vblock,
+                   self.nblock, self.active], device=self.device)
+
+    def friction_guess(self, x, disp, dt: float, f_drive) -> None:
+        """Friction's normal force for the step and the initial guess of the vertices it acts
+        on (`friction_guess_kernel`; ``f_drive``: the forces other than contact at ``x``, the
+        prediction); ``disp`` (which tracks ``x - x_hat``) is updated the same."""
+        wp.launch(friction_guess_kernel, self.threads,
+                  [self.record, x, self.model.inv_mass, self.lam, self.sources, dt * dt,
+                   f_drive, self.threads, disp], device=self.device)
+
+    def energy(self, x, out, dt: float, slot: int = 0) -> None:
+        """``E_c(x)`` added to ``out[slot]`` (a float64 array)."""
+        wp.launch(contact_energy_kernel, self.threads,
+                  [self.record, x, self.model.inv_mass, *self._args(dt), out, slot],
+                  device=self.device)
+
+    def end_step(self, x, v, dt: float) -> None:
+        """After the solve: the normal forces for the next step's friction, and no vertex held
+        by an active entry still approaching its surface."""
+        self.lam.zero_()
+        wp.launch(normal_force_kernel, self.threads,
+                  [self.record, x, self.model.inv_mass, self.kappa / (dt * dt), self.threads,
+                   self.sources, self.lam], device=self.device)
+        wp.launch(contact_velocity_kernel, self.threads,
+                  [self.record, x, self.model.inv_mass, 1.0 / dt, self.stage.contact.slack,
+                   self.threads, v],
+                  device=self.device)
+
+    # ------------------------------------------------------------------ projective dynamics
+    def pd_local(self, x, f, objective, slot: int, dt: float) -> None:
+        """Forces into ``f``, this iteration's blocks into `vblock`, ``E_c`` into the objective."""
+        self.vblock.zero_()
+        wp.launch(pd_contact_kernel, self.threads,
+                  [self.record, x, self.model.inv_mass, *self._args(dt), f, self.vblock,
+                   objective, slot], device=self.device)
+
+    def invert_diagonal(self, blocks, free, dinv) -> None:
+        """``dinv = (blocks + vblock)^-1`` (the global matrix's diagonal with contact)."""
+        wp.launch(block_inverse_kernel, self.model.num_vertices, [blocks, self.vblock, free, dinv],
+                  device=self.device)
+
+    def host_factors(self, free_index):
+        """`vblock` as low-rank factors for a direct solve (host): ``(rows, U)`` with ``rows``
+        positions in ``free_index`` and ``U`` (r, 3) such that the blocks are ``sum u u^T``
+        (eigen-decomposition of each non-zero block)."""
+        vb = self.vblock.numpy().astype(np.float64)
+        pos = -np.ones(self.model.num_vertices, dtype=np.int64)
+        pos[free_index] = np.arange(len(free_index))
+        rows, us = [], []
+        for i in np.flatnonzero(np.abs(vb).reshape(len(vb), -1).max(axis=1) > 0):
+            if pos[i] < 0:
+                continue
+            lam, V = np.linalg.eigh(0.5 * (vb[i] + vb[i].T))
+            for a in range(3):
+                if lam[a] > 1e-12 * max(lam.max(), 1e-30):
+                    rows.append(pos[i])
+                    us.append(math.sqrt(lam[a]) * V[:, a])
+        return np.asarray(rows, dtype=np.int64), np.asarray(us, dtype=np.float64).reshape(-1, 3)
