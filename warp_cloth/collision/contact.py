@@ -27,11 +27,17 @@ resting on a surface sit at ``thickness``). Only vertices are tested: a cloth ed
 can still cut a sharp obstacle corner between vertices, and two overlapping obstacles can push a
 vertex into each other (the last one wins).
 
-**How contact enters each solver** (all through `Solver.add_correction`):
+**How contact enters each solver** (through the solver's `CollisionStage`, which owns this
+object):
 
-- explicit (symplectic Euler), implicit (Newton) and projective dynamics: `apply(state, x_start,
-  dt)` runs after the solve: it projects positions and applies the impulse to the velocities, so
-  the state leaves the step consistent (``v . N >= 0`` relative to the obstacle).
+- every solver: `apply(state, x_start, dt)` ends the step (`CollisionStage.resolve`, after the
+  limits): it projects positions and applies the impulse to the velocities, so the state leaves
+  the step consistent (``v . N >= 0`` relative to the obstacle).
+- implicit (Newton) and projective dynamics: before their solve, `detect` gives every vertex
+  whose predicted path comes near an obstacle a contact plane in the stage's record, which they
+  take into the solve (`warp_cloth.solvers.contact_coupling`).
+- explicit (symplectic Euler): `integrate_and_apply` runs the solver's vertex update and `apply`
+  with the far tests in one pass.
 - position-based: before its iterations the solver calls `begin_iterations`, which gives each
   vertex the last `apply` found near an obstacle a contact plane per obstacle (exact geometry and
   continuous test at the predicted position; `warp_cloth.collision.planes`, as in Müller et al.
@@ -61,15 +67,14 @@ before the general (BVH) one. Explicit Euler runs the far tests inside its own v
 allocated per step.
 
 **Cost** (``warp-cloth bench contact``: the 32x32 drape, each solver timed with and without the
-contact from the same draped state; CPU, graph replay, medians; ranges over repeated runs).
-Implicit Euler and projective dynamics: +0-2 % (analytic), +5-10 % (960-triangle mesh): their
-steps cost milliseconds. Position-based dynamics: +11-19 % (sphere, sphere and plane), +15-25 %
-(spinning sphere; a noisy row), +16-19 % (mesh), with the contact planes. Explicit Euler is the
-hard case: its substep is ~37 us for 1,089 vertices (~34 ns a vertex, all forces included), so
-every per-vertex test shows: one static sphere +18-19.5 % (the benchmark's floor row, a
-hand-written pass for that one sphere with the same result, +17.5-19 %), mesh +42-44 %, spinning
-sphere +33-35 %, sphere and plane +27-28 %: a second obstacle's far test alone costs every vertex
-~3 ns, some 9 points of this step.
+contact from the same draped state; CPU, graph replay, medians of 5 rounds). Implicit Euler and
+projective dynamics, which take the contacts into their solve (`warp_cloth.solvers.
+contact_coupling`): +15.5-19 % and +9-11 % (analytic), +16 % and +21 % (960-triangle mesh).
+Position-based dynamics: +16-17 %, with the contact planes. Explicit Euler is the hard case: its
+substep is ~37 us for 1,089 vertices (~34 ns a vertex, all forces included), so every per-vertex
+test shows: one static sphere +18 % (the benchmark's floor row, a hand-written pass for that one
+sphere with the same result, +10-19 % over runs), mesh +41 %, spinning sphere +32 %, sphere and
+plane +24.5 %: a second obstacle's far test alone costs every vertex ~3 ns.
 What Warp's CPU backend charges, measured: every variable of a kernel initialised for every
 thread (hence separate far and near passes, and the mesh's general path in a kernel of its own:
 its mere call site made the common case a fifth dearer), a struct passed by value copied at
