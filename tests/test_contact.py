@@ -9,8 +9,8 @@ import warp as wp
 
 from warp_cloth import ClothModel, TriMesh, make_solver
 from warp_cloth.collision import (
-    PENETRATION_TOLERANCE, Box, KeyframePath, MeshObstacle, Motion, ObstacleContact, Plane,
-    Sphere, quat_from_axis_angle,
+    PENETRATION_TOLERANCE, Box, CollisionStage, KeyframePath, MeshObstacle, Motion,
+    ObstacleContact, Plane, Sphere, quat_from_axis_angle,
 )
 from warp_cloth.collision import analytic, mesh_contact, motion
 from warp_cloth.contact_scenes import asset_path, sheet_model
@@ -82,9 +82,10 @@ def test_no_vertex_inside_after_each_step_explicit(kind):
     solver.add_correction(contact)
     dt = solver_dt(solver)
     st, worst = step_and_check(model, solver, contact, int(round(0.3 / dt)), dt)
-    # it did land on the obstacle: some vertex rests at the contact thickness
+    # it did land on the obstacle: some vertex rests at the contact thickness (on the coarse
+    # torus the cloth's triangles rest on its ridges, their vertices up to a few mm higher)
     phi = contact.signed_distances(st.positions(), st.t).min(axis=0)
-    assert np.abs(phi - contact.thickness).min() < 1e-3
+    assert np.abs(phi - contact.thickness).min() < (3e-3 if kind == "mesh" else 1e-3)
     assert worst >= contact.thickness - 1e-3
 
 
@@ -407,7 +408,7 @@ def test_mesh_distance_cache_is_invalidated_when_the_state_jumps():
     model, st = particles(np.array([[0.0, 0.6, 0.0], [0.5, 0.0, 0.0]]))
     contact = ObstacleContact(model, [ball], cache_margin=1.0)  # far vertices get a big gap
     solver = make_solver("explicit", model)
-    solver.add_correction(contact)
+    solver.set_collision(CollisionStage(model, contact, edges=False))  # vertex caches
     for _ in range(3):
         solver.step(st, 1e-3)
     assert contact._gap.numpy()[0] > 0.2  # cached: far from the ball
@@ -438,7 +439,7 @@ def test_mesh_distance_cache_matches_uncached(motion):
         # the candidate cache off in both runs: it changes float rounding (tested below)
         contact = ObstacleContact(model, [torus], cache_margin=0.05, candidate_radius=0.0)
         solver = make_solver("explicit", model)
-        solver.add_correction(contact)
+        solver.set_collision(CollisionStage(model, contact, edges=False))  # vertex caches
         st = model.state()
         dt = solver_dt(solver)
         free = model.inverse_masses > 0
@@ -517,7 +518,7 @@ def test_mesh_candidate_cache_matches_bvh_queries(motion):
     model = sheet_model(res=12, height=0.5)
     contact = ObstacleContact(model, [torus], friction=0.4)
     solver = make_solver("explicit", model)
-    solver.add_correction(contact)
+    solver.set_collision(CollisionStage(model, contact, edges=False))  # vertex caches
     st = model.state()
     dt = solver_dt(solver)
     cache = contact._cache
@@ -596,13 +597,16 @@ def test_explicit_fused_contact_matches_separate_pass(kind):
             solver.step(st, dt)
             if k % 50 == 0:
                 phi = contact.signed_distances(st.positions(), st.t)
-                touching = max(touching, int((phi < contact.thickness + contact.slack).sum()))
+                # (on the coarse torus the cloth's triangles rest on its ridges, the vertices
+                # a few mm higher: the stage's feature pass)
+                reach = contact.thickness + (3e-3 if "mesh" in kind else contact.slack)
+                touching = max(touching, int((phi < reach).sum()))
         return st.positions(), st.velocities(), touching
 
     x_f, v_f, touching = run(True)
     x_s, v_s, _ = run(False)
-    assert touching >= 5  # the cloth lay on the obstacles
     assert np.array_equal(x_f, x_s) and np.array_equal(v_f, v_s)
+    assert touching >= 5  # the cloth lay on the obstacles
 
 
 @wp.kernel

@@ -18,9 +18,9 @@ import sys
 
 from .util import quiet_warp
 
-SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh"]
+SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh", "thin"]
 SOLVER_NAMES = ["explicit", "implicit", "pbd", "pd"]
-CONTACT_SCENES = ["drape", "table", "spin", "mesh"]
+CONTACT_SCENES = ["drape", "table", "spin", "mesh", "thin"]
 CONTACT_OPTIONS = ["friction", "restitution", "thickness"]
 BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability", "ccd"]
 

@@ -30,7 +30,7 @@ from .mesh import TriMesh
 from .model import DEFAULT_DENSITY, DEFAULT_STRETCH_STIFFNESS, ClothModel
 from .scenes import _finish, _grid_shape
 
-__all__ = ["drape", "table", "spin", "mesh", "sheet_model", "asset_path"]
+__all__ = ["drape", "table", "spin", "mesh", "thin", "thin_parts_mesh", "sheet_model", "asset_path"]
 
 #: the meshes shipped with the package (``warp_cloth/assets``; ``assets/make_assets.py`` makes them)
 ASSETS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "assets")
@@ -151,4 +151,75 @@ def mesh(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
     return _contact_scene(model, obs, solver=solver, solver_options=solver_options, fps=fps,
                           frames=frames, substeps=substeps, corrections=corrections,
                           extra_obstacles=obstacles, strain_bound=strain_bound, name="mesh",
+                          thickness=thickness, friction=friction, restitution=restitution)
+
+
+def thin_parts_mesh(*, blade=(0.5, 0.25, 0.003), blade_cells=(50, 24), ring_radius=0.3,
+                    tube_radius=0.006, ring_segments=(192, 12), ring_height=0.2) -> TriMesh:
+    """A closed mesh with thin parts, for testing that cloth edges do not cut through obstacles:
+    a vertical blade (a box ``blade`` = width x height x thickness, m, standing on y = 0, its
+    large faces split into ``blade_cells``) and a thin horizontal ring around it (a torus of
+    ``ring_radius`` with a tube of ``tube_radius``, ``ring_segments`` = around x across) at
+    ``ring_height``. Defaults: 9,704 triangles (4,608 in the ring)."""
+    w, h, t = (float(c) for c in blade)
+    nx, ny = (int(c) for c in blade_cells)
+    if min(w, h, t, ring_radius, tube_radius) <= 0 or min(nx, ny) < 1:
+        raise ValueError("thin_parts_mesh: sizes must be positive")
+    verts, tris = [], []
+
+    def grid(origin, du, dv, nu, nv):
+        base = sum(len(v) for v in verts)
+        u = np.linspace(0.0, 1.0, nu + 1)
+        vv = np.linspace(0.0, 1.0, nv + 1)
+        pts = (np.asarray(origin)[None, None] + u[:, None, None] * np.asarray(du)[None, None]
+               + vv[None, :, None] * np.asarray(dv)[None, None]).reshape(-1, 3)
+        idx = np.arange((nu + 1) * (nv + 1)).reshape(nu + 1, nv + 1) + base
+        a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
+        verts.append(pts)
+        tris.append(np.stack([np.stack([a, b, c], -1), np.stack([a, c, d], -1)], 2).reshape(-1, 3))
+
+    # the blade: six faces of the box [-w/2, w/2] x [0, h] x [-t/2, t/2], outward (u x v)
+    x0, x1, z0, z1 = -0.5 * w, 0.5 * w, -0.5 * t, 0.5 * t
+    grid((x0, 0, z1), (w, 0, 0), (0, h, 0), nx, ny)  # +z
+    grid((x1, 0, z0), (-w, 0, 0), (0, h, 0), nx, ny)  # -z
+    grid((x0, h, z1), (w, 0, 0), (0, 0, -t), nx, 1)  # +y (the rim)
+    grid((x0, 0, z0), (w, 0, 0), (0, 0, t), nx, 1)  # -y
+    grid((x1, 0, z1), (0, 0, -t), (0, h, 0), 1, ny)  # +x
+    grid((x0, 0, z0), (0, 0, t), (0, h, 0), 1, ny)  # -x
+    # weld the box's duplicate corner vertices
+    v = np.concatenate(verts)
+    f = np.concatenate(tris)
+    key = np.round(v / (1e-6 * max(w, h, t)), 0).astype(np.int64)
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    v, f = v[first], inv.reshape(-1)[f]
+    # the ring
+    nu, nv = (int(c) for c in ring_segments)
+    a = np.linspace(0, 2 * np.pi, nu, endpoint=False)
+    b = np.linspace(0, 2 * np.pi, nv, endpoint=False)
+    A, B = np.meshgrid(a, b, indexing="ij")
+    r = ring_radius + tube_radius * np.cos(B)
+    ring = np.stack([r * np.cos(A), ring_height + tube_radius * np.sin(B), r * np.sin(A)], -1)
+    idx = np.arange(nu * nv).reshape(nu, nv) + len(v)
+    i0, i1 = idx, np.roll(idx, -1, axis=0)
+    j0, j1 = i0, np.roll(i0, -1, axis=1)
+    k1 = np.roll(i1, -1, axis=1)
+    rt = np.stack([np.stack([i0, j1, k1], -1), np.stack([i0, k1, i1], -1)], 2).reshape(-1, 3)
+    v = np.concatenate([v, ring.reshape(-1, 3)])
+    f = np.concatenate([f, rt])
+    return TriMesh(v, f, name="thin_parts")
+
+
+def thin(*, solver: str = "explicit", solver_options: dict | None = None, fps: float = 60.0,
+         frames: int = 120, substeps=None, corrections=(), obstacles=(),
+         strain_bound: float = 10.0, thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
+         restitution: float = 0.0, height: float = 0.45, size: float = 0.9, mesh_options=None,
+         **model_args):
+    """A sheet dropped onto an obstacle with thin parts (`thin_parts_mesh`: a 3 mm blade and a
+    12 mm ring, 9,704 triangles) over a floor: the cloth drapes over the blade's rim and the
+    ring, where its edges would cut through them without edge contact."""
+    model = sheet_model(height=height, size=size, **model_args)
+    ob = MeshObstacle(thin_parts_mesh(**(mesh_options or {})), name="thin_parts")
+    return _contact_scene(model, [ob, Plane()], solver=solver, solver_options=solver_options,
+                          fps=fps, frames=frames, substeps=substeps, corrections=corrections,
+                          extra_obstacles=obstacles, strain_bound=strain_bound, name="thin",
                           thickness=thickness, friction=friction, restitution=restitution)

@@ -96,6 +96,7 @@ LAZY_SCENES = {
     "table": "warp_cloth.contact_scenes",
     "spin": "warp_cloth.contact_scenes",
     "mesh": "warp_cloth.contact_scenes",
+    "thin": "warp_cloth.contact_scenes",
 }
 
 

@@ -26,9 +26,10 @@ needs, through one interface:
   the far tests (the collision layer knows nothing of the solver; the solver hands it its
   update, `warp_cloth.solvers.explicit`).
 
-Self-collision (vertex-triangle and edge-edge pairs of the cloth itself) plugs in as a second
-source: its pairs go into the same record with barycentric weights, and its response runs in
-``resolve``.
+Mesh obstacles' sharp features (thin parts, rims, spikes) against the cloth's edges and
+triangles (`warp_cloth.collision.features`) are a second source: vertex-triangle and edge-edge
+pairs in the same record with barycentric weights, responded to in ``resolve``. Self-collision
+plugs in the same way.
 """
 
 from __future__ import annotations
@@ -57,6 +58,9 @@ class CollisionStage:
             `ObstacleContact` already built on ``model``.
         solve_margin: m, >= 0; how far beyond the thickness a predicted path may pass an
             obstacle and still get a constraint for the solve (default 0.01 m).
+        edges: also keep the cloth's edges and triangles out of the meshes' sharp features
+            (`warp_cloth.collision.features`; default True). False tests vertices only (for a
+            model whose mesh edges are not a surface, e.g. free particles).
         **contact_options: `ObstacleContact` options (``thickness``, ``friction``,
             ``restitution``, ``ccd``, ``slack``, ...), when ``obstacles`` are shapes.
 
@@ -70,7 +74,7 @@ class CollisionStage:
     capturable = True
 
     def __init__(self, model, obstacles, *, solve_margin: float = DEFAULT_SOLVE_MARGIN,
-                 **contact_options):
+                 edges: bool = True, **contact_options):
         if isinstance(obstacles, ObstacleContact):
             if contact_options:
                 raise ValueError("CollisionStage: give contact options to the ObstacleContact, "
@@ -94,9 +98,15 @@ class CollisionStage:
         self.device = model.device
         self.contact = contact
         self.solve_margin = solve_margin
-        # one vertex-obstacle entry per (vertex, obstacle) at most
-        self.capacity = model.num_vertices * len(contact.obstacles)
+        # cloth edges and triangles against the meshes' sharp features (none: no cost)
+        from .features import FeatureContact
+
+        self.features = FeatureContact(model, contact if edges else None)
+        # one vertex-obstacle entry per (vertex, obstacle) at most, and the features' share
+        self.capacity = model.num_vertices * len(contact.obstacles) + self.features.capacity
         self.record = make_record(self.capacity, self.device)
+        self.pair_record = (make_record(self.features.capacity, self.device)
+                            if self.features.active else None)
 
     # ------------------------------------------------------------------ what it holds
     @property
@@ -113,11 +123,25 @@ class CollisionStage:
         (``time``: the device clock at the step's start). Capturable: counts stay on the device."""
         self.record.count.zero_()
         self.contact.detect(x_pred, x_start, dt, time, self.solve_margin, self.record)
+        self.features.detect(x_start, x_pred, self.solve_margin, self.record)
 
     # ------------------------------------------------------------------ response
     def resolve(self, state, x_start, dt: float) -> None:
-        """The final guarantee after the solve and the limits (`ObstacleContact.apply`)."""
+        """The final guarantee after the solve and the limits: `ObstacleContact.apply` (every
+        vertex), then the sharp mesh features against the cloth's edges and triangles on the
+        actual paths (`FeatureContact`)."""
         self.contact.apply(state, x_start, dt)
+        self._features(state, x_start, dt)
+
+    def _features(self, state, x_start, dt):
+        """The sharp features against the cloth's edges and triangles on the actual paths, then
+        vertex contact again for the vertices that response moved (it may push one into
+        another surface; the others are not approaching and are left as they are)."""
+        if self.pair_record is not None:
+            self.pair_record.count.zero_()
+            self.features.detect(x_start, state.x, 0.0, self.pair_record)
+            self.features.respond(state, dt, self.pair_record)
+            self.contact.apply(state, x_start, dt)
 
     # position-based iterations
     def begin_iterations(self, x, x_start, dt: float, time=None) -> None:
@@ -132,15 +156,25 @@ class CollisionStage:
         return self.contact.fusable
 
     def integrate_and_apply(self, state, x_start, f, gravity, decay, dt, update) -> None:
+        """The solver's vertex update with `resolve` in the same pass (`ObstacleContact.
+        integrate_and_apply`), then the sharp features (which need every start position)."""
+        if self.pair_record is not None:
+            wp.copy(x_start, state.x)
         self.contact.integrate_and_apply(state, x_start, f, gravity, decay, dt, update)
+        self._features(state, x_start, dt)
 
     # ------------------------------------------------------------------ reports
     @property
     def stats(self) -> dict:
         """Entries of the last `detect` and entries dropped for capacity (host reads)."""
         count = int(self.record.count.numpy()[0])
-        return {"contacts": min(count, self.capacity),
-                "contact_overflow": int(self.record.overflow.numpy()[0])}
+        out = {"contacts": min(count, self.capacity),
+               "contact_overflow": int(self.record.overflow.numpy()[0])}
+        if self.pair_record is not None:
+            pc = int(self.pair_record.count.numpy()[0])
+            out["feature_contacts"] = min(pc, self.pair_record.vertex.shape[0])
+            out["contact_overflow"] += int(self.pair_record.overflow.numpy()[0])
+        return out
 
     def max_penetration(self, state) -> float:
         return self.contact.max_penetration(state)

@@ -1,0 +1,426 @@
+"""Cloth edges and triangles against the sharp features of mesh obstacles.
+
+Vertex contact (`ObstacleContact`) keeps every cloth *vertex* outside the obstacles, but a cloth
+edge between two such vertices can still cut through a thin part of a mesh (a blade, a thin tube,
+a sharp rim) and a cloth triangle can still be pierced by a spike. Only where the surface turns
+sharply over a cloth edge's length ``L`` can that happen: a cloth edge whose ends are the thickness
+``h`` outside dips under a crease whose normals differ by ``theta`` by at most about
+``(L/2) sin(theta/2) - h``, and under a curved part of radius ``R`` by ``L^2 / (8R) - h``.
+`sharp_features` keeps, once on the host, the convex edges where either exceeds ``h/2`` (``L``:
+the longest cloth edge stretched by 20 %), boundary and non-manifold edges, and their vertices;
+elsewhere a cloth edge may cut at most half the thickness into the surface between its vertices.
+The 960-triangle torus of the ``mesh`` scene (tube radius 8 cm) has no such feature for the
+default 32 x 32 sheet, and pays nothing; a blade or a thin tube does.
+
+Each step, on the paths from ``x_start`` to ``x`` (cloth) and from the pose at ``t`` to the pose
+at ``t + dt`` (obstacle):
+
+- **broad phase**: swept boxes of the cloth's triangles and edges (inflated by the thickness and
+  a margin) in two `wp.Bvh`, refitted; each sharp vertex queries the triangle BVH and each sharp
+  edge the edge BVH with its own swept box (no pair whose boxes overlap is missed);
+- **narrow phase**: the continuous vertex-triangle and edge-edge tests of
+  `warp_cloth.collision.geometry` (float64, minimum separation = the thickness), which also
+  report pairs that end within the thickness;
+- **record**: each hit becomes a record entry (`warp_cloth.collision.record`): the cloth
+  vertices with their barycentric weights, the normal from the obstacle feature to the cloth at
+  the time of impact (the side the cloth came from) and the offset that keeps the cloth feature
+  the thickness away from the obstacle feature's end position;
+- **response** (`respond`): Jacobi rounds over the entries, each moving the cloth feature's
+  vertices along its normal by their share ``w_j / m_j / sum_k w_k^2 / m_k`` of the violation
+  (Bridson et al. 2002), averaged per vertex, with ``v += dx / dt``.
+
+Implicit Euler and projective dynamics get the entries of the predicted path in their solve
+(`CollisionStage.detect`), like vertex contacts.
+
+No host decision: the BVHs are built on the first call (outside any capture: the scene runner
+captures from its second frame) and refitted after (Warp records a CPU refit in a captured graph
+and re-runs it on replay; on CUDA the refit is a kernel). Entries past the record's capacity are
+counted (``stats``), not silent.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, point_triangle_closest,
+                       segment_segment_closest)
+from .record import KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, record_append
+
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
+__all__ = ["sharp_features", "FeatureContact"]
+
+#: advances of the continuous tests before a conservative hit
+CCD_ITERATIONS = 64
+#: cloth edges are taken this much longer than at rest when deciding which ridges are sharp
+STRETCH_MARGIN = 1.2
+
+
+def sharp_features(vertices, triangles, length: float, thickness: float):
+    """``(edges (E, 2), vertices (V,))`` of a triangle mesh that a cloth edge of ``length`` whose
+    ends are ``thickness`` outside can cut into by more than half the thickness: convex edges
+    where either estimate of the dip exceeds ``1.5 thickness``, a single crease
+    ``(L/2) sin(theta/2)`` (``theta``: the angle between the face normals) or an arc
+    ``L^2 / (8 R)`` with the local radius ``R = l / theta`` (``l``: the distance between the two
+    faces' centroids; a thin tube has no sharp crease but a small radius), plus boundary and
+    non-manifold edges, and every vertex of those edges (host, once)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    cen = v[t].mean(axis=1)
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    opp = np.concatenate([t[:, 2], t[:, 0], t[:, 1]])
+    face = np.tile(np.arange(len(t)), 3)
+    key = np.sort(e, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    key, opp, face = key[order], opp[order], face[order]
+    start = np.flatnonzero(np.r_[True, (key[1:] != key[:-1]).any(axis=1)])
+    count = np.diff(np.r_[start, len(key)])
+    L, h = float(length), float(thickness)
+    sharp = []
+    for s, c in zip(start, count):
+        a, b = key[s]
+        if c != 2:  # boundary (an open mesh's rim) or non-manifold
+            sharp.append((a, b))
+            continue
+        f1, f2 = face[s], face[s + 1]
+        if float((v[opp[s + 1]] - v[a]) @ n[f1]) >= 0.0:
+            continue  # concave or flat: a straight edge outside it stays outside
+        theta = math.acos(min(1.0, max(-1.0, float(n[f1] @ n[f2]))))
+        ell = max(float(np.linalg.norm(cen[f1] - cen[f2])), 1e-12)
+        dip = max(0.5 * L * math.sin(0.5 * theta), min(L * L * theta / (8.0 * ell), 0.5 * L))
+        if dip > 1.5 * h:
+            sharp.append((a, b))
+    edges = np.asarray(sharp, dtype=np.int64).reshape(-1, 2)
+    return edges, np.unique(edges)
+
+
+@wp.kernel
+def feature_world_kernel(local: wp.array(dtype=wp.vec3), pose_of: wp.array(dtype=int),
+                         poses: wp.array(dtype=wp.transform), p0: wp.array(dtype=wp.vec3),
+                         p1: wp.array(dtype=wp.vec3)):
+    """Sharp vertices in the world at the start and the end of the step."""
+    i = wp.tid()
+    k = pose_of[i]
+    p0[i] = wp.transform_point(poses[5 * k + 0], local[i])
+    p1[i] = wp.transform_point(poses[5 * k + 1], local[i])
+
+
+@wp.kernel
+def cloth_bounds_kernel(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                        tris: wp.array2d(dtype=wp.int32), edges: wp.array2d(dtype=wp.int32),
+                        num_tris: int, pad: float, lowers: wp.array(dtype=wp.vec3),
+                        uppers: wp.array(dtype=wp.vec3), elowers: wp.array(dtype=wp.vec3),
+                        euppers: wp.array(dtype=wp.vec3)):
+    """Swept boxes (start and end positions, inflated by ``pad``): threads below ``num_tris``
+    for triangles, the rest for edges."""
+    k = wp.tid()
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    if k < num_tris:
+        for c in range(3):
+            i = tris[k, c]
+            lo = wp.min(lo, wp.min(x0[i], x1[i]))
+            hi = wp.max(hi, wp.max(x0[i], x1[i]))
+        lowers[k] = lo - wp.vec3(pad)
+        uppers[k] = hi + wp.vec3(pad)
+    else:
+        e = k - num_tris
+        for c in range(2):
+            i = edges[e, c]
+            lo = wp.min(lo, wp.min(x0[i], x1[i]))
+            hi = wp.max(hi, wp.max(x0[i], x1[i]))
+        elowers[e] = lo - wp.vec3(pad)
+        euppers[e] = hi + wp.vec3(pad)
+
+
+@wp.func
+def d3(v: wp.vec3):
+    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
+
+
+@wp.func
+def f3(v: wp.vec3d):
+    return wp.vec3(float(v[0]), float(v[1]), float(v[2]))
+
+
+@wp.kernel
+def vertex_triangle_kernel(
+    bvh: wp.uint64,
+    p0: wp.array(dtype=wp.vec3),
+    p1: wp.array(dtype=wp.vec3),
+    source: wp.array(dtype=int),
+    x0: wp.array(dtype=wp.vec3),
+    x1: wp.array(dtype=wp.vec3),
+    tris: wp.array2d(dtype=wp.int32),
+    gap: float,
+    mu_t: wp.array(dtype=float),
+    rec: ContactRecord,
+):
+    """A sharp obstacle vertex against the cloth triangles its path comes within ``gap`` of:
+    an entry keeping the triangle ``gap`` away from the vertex's end position, on the side the
+    triangle was at the time of impact."""
+    i = wp.tid()
+    a0 = p0[i]
+    a1 = p1[i]
+    lo = wp.min(a0, a1) - wp.vec3(gap)
+    hi = wp.max(a0, a1) + wp.vec3(gap)
+    q = wp.bvh_query_aabb(bvh, lo, hi)
+    t = int(0)
+    while wp.bvh_query_next(q, t):
+        ia = tris[t, 0]
+        ib = tris[t, 1]
+        ic = tris[t, 2]
+        s, toi = ccd_vertex_triangle(d3(a0), d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(a1),
+                                     d3(x1[ia]), d3(x1[ib]), d3(x1[ic]), wp.float64(gap),
+                                     CCD_ITERATIONS)
+        if s == CCD_MISS:
+            continue
+        # the configuration at the time of impact
+        ft = float(toi)
+        pa = x0[ia] + ft * (x1[ia] - x0[ia])
+        pb = x0[ib] + ft * (x1[ib] - x0[ib])
+        pc = x0[ic] + ft * (x1[ic] - x0[ic])
+        pv = a0 + ft * (a1 - a0)
+        cq, bw = point_triangle_closest(d3(pv), d3(pa), d3(pb), d3(pc))
+        d = f3(cq) - pv
+        n = wp.vec3(0.0)
+        if wp.length(d) > 1.0e-9:
+            n = wp.normalize(d)
+        else:
+            # touching: the face normal, on the side the triangle was at the start
+            n = wp.normalize(wp.cross(pb - pa, pc - pa))
+            w0 = wp.vec3(float(bw[0]), float(bw[1]), float(bw[2]))
+            q0 = w0[0] * x0[ia] + w0[1] * x0[ib] + w0[2] * x0[ic]
+            if wp.dot(q0 - a0, n) < 0.0:
+                n = -n
+        w = wp.vec4(float(bw[0]), float(bw[1]), float(bw[2]), 0.0)
+        record_append(rec, KIND_VERTEX_TRIANGLE, wp.vec4i(ia, ib, ic, -1), w, n,
+                      wp.dot(n, a1) + gap, a1, mu_t[source[i]], 0.0, source[i])
+
+
+@wp.kernel
+def edge_edge_kernel(
+    bvh: wp.uint64,
+    p0: wp.array(dtype=wp.vec3),
+    p1: wp.array(dtype=wp.vec3),
+    fedges: wp.array2d(dtype=wp.int32),
+    source: wp.array(dtype=int),
+    x0: wp.array(dtype=wp.vec3),
+    x1: wp.array(dtype=wp.vec3),
+    edges: wp.array2d(dtype=wp.int32),
+    gap: float,
+    mu_t: wp.array(dtype=float),
+    rec: ContactRecord,
+):
+    """A sharp obstacle edge against the cloth edges its path comes within ``gap`` of: an entry
+    keeping the cloth edge ``gap`` away from the obstacle edge's end position."""
+    k = wp.tid()
+    ja = fedges[k, 0]
+    jb = fedges[k, 1]
+    a0 = p0[ja]
+    b0 = p0[jb]
+    a1 = p1[ja]
+    b1 = p1[jb]
+    lo = wp.min(wp.min(a0, a1), wp.min(b0, b1)) - wp.vec3(gap)
+    hi = wp.max(wp.max(a0, a1), wp.max(b0, b1)) + wp.vec3(gap)
+    q = wp.bvh_query_aabb(bvh, lo, hi)
+    e = int(0)
+    src = source[ja]
+    while wp.bvh_query_next(q, e):
+        ic = edges[e, 0]
+        id = edges[e, 1]
+        s, toi = ccd_edge_edge(d3(a0), d3(b0), d3(x0[ic]), d3(x0[id]), d3(a1), d3(b1),
+                               d3(x1[ic]), d3(x1[id]), wp.float64(gap), CCD_ITERATIONS)
+        if s == CCD_MISS:
+            continue
+        ft = float(toi)
+        pa = a0 + ft * (a1 - a0)
+        pb = b0 + ft * (b1 - b0)
+        pc = x0[ic] + ft * (x1[ic] - x0[ic])
+        pd = x0[id] + ft * (x1[id] - x0[id])
+        so, tc, co, cc = segment_segment_closest(d3(pa), d3(pb), d3(pc), d3(pd))
+        d = f3(cc) - f3(co)
+        n = wp.vec3(0.0)
+        if wp.length(d) > 1.0e-9:
+            n = wp.normalize(d)
+        else:
+            n = wp.cross(pb - pa, pd - pc)
+            if wp.length(n) < 1.0e-12:
+                n = wp.vec3(0.0, 1.0, 0.0)
+            n = wp.normalize(n)
+            s0 = float(so)
+            t0 = float(tc)
+            sep = (x0[ic] + t0 * (x0[id] - x0[ic])) - (a0 + s0 * (b0 - a0))
+            if wp.dot(sep, n) < 0.0:
+                n = -n
+        fs = float(so)
+        ft2 = float(tc)
+        o1 = a1 + fs * (b1 - a1)
+        w = wp.vec4(1.0 - ft2, ft2, 0.0, 0.0)
+        record_append(rec, KIND_EDGE_EDGE, wp.vec4i(ic, id, -1, -1), w, n, wp.dot(n, o1) + gap,
+                      o1, mu_t[src], 0.0, src)
+
+
+@wp.kernel
+def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.vec3),
+                          inv_mass: wp.array(dtype=float), acc: wp.array(dtype=wp.vec3),
+                          cnt: wp.array(dtype=int), num_threads: int):
+    """One Jacobi round: each violated entry's correction, shared by mass and weight."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(first + t, count, num_threads):
+        vid = rec.vertex[e]
+        w = rec.weight[e]
+        n = rec.normal[e]
+        g = -rec.offset[e]
+        den = float(0.0)
+        for j in range(4):
+            v = vid[j]
+            if v >= 0:
+                g = g + w[j] * wp.dot(n, x[v])
+                den = den + w[j] * w[j] * inv_mass[v]
+        if g < 0.0 and den > 0.0:
+            lam = -g / den
+            for j in range(4):
+                v = vid[j]
+                if v >= 0 and inv_mass[v] > 0.0:
+                    wp.atomic_add(acc, v, (lam * w[j] * inv_mass[v]) * n)
+                    wp.atomic_add(cnt, v, 1)
+
+
+@wp.kernel
+def jacobi_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                        acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int), inv_dt: float):
+    """``x += acc / cnt``, ``v += (acc / cnt) / dt``; clears the accumulators."""
+    i = wp.tid()
+    c = cnt[i]
+    if c > 0:
+        d = acc[i] / float(c)
+        x[i] = x[i] + d
+        v[i] = v[i] + inv_dt * d
+        acc[i] = wp.vec3(0.0)
+        cnt[i] = 0
+
+
+class FeatureContact:
+    """The sharp features of a stage's mesh obstacles against the cloth's edges and triangles
+    (module docstring). ``active`` is False (and nothing is allocated) when no mesh has one.
+
+    Args:
+        model: the `ClothModel`.
+        contact: the stage's `ObstacleContact` (its meshes, poses and thickness), or None
+            (inactive).
+        rounds: Jacobi rounds of `respond`.
+    """
+
+    def __init__(self, model, contact, rounds: int = 4):
+        self.model = model
+        self.device = d = model.device
+        self.contact = contact
+        self.rounds = int(rounds)
+        self.active = False
+        self.num_vertices = self.num_edges = 0
+        if contact is None or not contact.meshes:
+            return
+        self.thickness = contact.thickness
+        rest = _edge_lengths(model)
+        # the longest cloth edge, stretched by STRETCH_MARGIN: ridges it cannot cut into by
+        # more than half the thickness are skipped
+        self.length = STRETCH_MARGIN * float(rest.max()) if len(rest) else 0.0
+        local, pose_of, src, fedges = [], [], [], []
+        n_analytic = len(contact.analytic)
+        base = 0
+        for m, ob in enumerate(contact.meshes):
+            e, vs = sharp_features(ob.vertices, ob.triangles, self.length, self.thickness)
+            if len(vs) == 0:
+                continue
+            remap = -np.ones(len(ob.vertices), dtype=np.int64)
+            remap[vs] = np.arange(len(vs)) + base
+            local.append(ob.vertices[vs])
+            pose_of.append(np.full(len(vs), n_analytic + m))
+            src.append(np.full(len(vs), n_analytic + m))
+            fedges.append(remap[e])
+            base += len(vs)
+        self.active = base > 0
+        self.num_vertices = base
+        self.num_edges = int(sum(len(e) for e in fedges))
+        if not self.active:
+            return
+        tris = np.asarray(model.mesh.triangles, dtype=np.int32)
+        edges = np.asarray(model.mesh.edges, dtype=np.int32)
+        self.num_tris, self.num_cloth_edges = len(tris), len(edges)
+        self.local = wp.array(np.concatenate(local), dtype=wp.vec3, device=d)
+        self.pose_of = wp.array(np.concatenate(pose_of).astype(np.int32), dtype=int, device=d)
+        self.source = wp.array(np.concatenate(src).astype(np.int32), dtype=int, device=d)
+        self.fedges = wp.array(np.concatenate(fedges).astype(np.int32).reshape(-1, 2),
+                               dtype=wp.int32, ndim=2, device=d)
+        self.p0 = wp.zeros(base, dtype=wp.vec3, device=d)
+        self.p1 = wp.zeros(base, dtype=wp.vec3, device=d)
+        self.tris = wp.array(tris, dtype=wp.int32, ndim=2, device=d)
+        self.edges = wp.array(edges, dtype=wp.int32, ndim=2, device=d)
+        self.lowers = wp.zeros(len(tris), dtype=wp.vec3, device=d)
+        self.uppers = wp.zeros(len(tris), dtype=wp.vec3, device=d)
+        self.elowers = wp.zeros(len(edges), dtype=wp.vec3, device=d)
+        self.euppers = wp.zeros(len(edges), dtype=wp.vec3, device=d)
+        self.tri_bvh = self.edge_bvh = None
+        ordered = contact.analytic + contact.meshes
+        fr = [(ob.friction if ob.friction is not None else contact.friction) for ob in ordered]
+        self.mu_t = wp.array(np.asarray(fr, dtype=np.float32), dtype=float, device=d)
+        n = model.num_vertices
+        self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.cnt = wp.zeros(n, dtype=int, device=d)
+        self.threads = max(1, -(-n // 16))
+
+    @property
+    def capacity(self) -> int:
+        """Record entries this source may need: 8 per sharp vertex and edge (at least 256)."""
+        return 0 if not self.active else max(256, 8 * (self.num_vertices + self.num_edges))
+
+    def detect(self, x0, x1, margin: float, record) -> None:
+        """Entries of the sharp features against the cloth on the paths ``x0 -> x1`` appended
+        to ``record`` (the obstacle poses must be those of the step: `ObstacleContact._poses`)."""
+        if not self.active:
+            return
+        d = self.device
+        gap = self.thickness + margin
+        wp.launch(feature_world_kernel, self.num_vertices,
+                  [self.local, self.pose_of, self.contact.poses, self.p0, self.p1], device=d)
+        wp.launch(cloth_bounds_kernel, self.num_tris + self.num_cloth_edges,
+                  [x0, x1, self.tris, self.edges, self.num_tris, gap, self.lowers, self.uppers,
+                   self.elowers, self.euppers], device=d)
+        if self.tri_bvh is None:
+            self.tri_bvh = wp.Bvh(self.lowers, self.uppers)
+            self.edge_bvh = wp.Bvh(self.elowers, self.euppers)
+        else:
+            self.tri_bvh.refit()
+            self.edge_bvh.refit()
+        wp.launch(vertex_triangle_kernel, self.num_vertices,
+                  [self.tri_bvh.id, self.p0, self.p1, self.source, x0, x1, self.tris, gap,
+                   self.mu_t, record], device=d)
+        if self.num_edges:
+            wp.launch(edge_edge_kernel, self.num_edges,
+                      [self.edge_bvh.id, self.p0, self.p1, self.fedges, self.source, x0, x1,
+                       self.edges, gap, self.mu_t, record], device=d)
+
+    def respond(self, state, dt: float, record, first: int = 0) -> None:
+        """`rounds` Jacobi rounds over the record's entries from ``first`` on."""
+        if not self.active:
+            return
+        d, m = self.device, self.model
+        for _ in range(self.rounds):
+            wp.launch(jacobi_project_kernel, self.threads,
+                      [record, first, state.x, m.inv_mass, self.acc, self.cnt, self.threads],
+                      device=d)
+            wp.launch(jacobi_apply_kernel, m.num_vertices,
+                      [state.x, state.v, self.acc, self.cnt, 1.0 / dt], device=d)
+
+
+def _edge_lengths(model):
+    v = np.asarray(model.mesh.vertices, dtype=np.float64)
+    e = np.asarray(model.mesh.edges)
+    return np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
