@@ -1,8 +1,9 @@
-"""The ``warp-cloth`` command line: ``run``, ``bench`` and ``info``.
+"""The ``warp-cloth`` command line: ``run``, ``bench``, ``check`` and ``info``.
 
     warp-cloth run hanging --out hanging.usd [--frames N --fps F --substeps S --res N
                            --solver {explicit,implicit,pbd,pd} --stiffness K --density RHO ...]
     warp-cloth bench NAME [options of that benchmark]
+    warp-cloth check FILE.usd [--prim PATH --json]
     warp-cloth info
 
 Bad options and values give a usage error (exit status 2), never a traceback.
@@ -18,9 +19,11 @@ import sys
 
 from .util import quiet_warp
 
-SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh", "thin"]
+SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh", "thin", "fold"]
 SOLVER_NAMES = ["explicit", "implicit", "pbd", "pd"]
-CONTACT_SCENES = ["drape", "table", "spin", "mesh", "thin"]
+CONTACT_SCENES = ["drape", "table", "spin", "mesh", "thin", "fold"]
+#: scenes whose default solver is not explicit Euler (self-collision at its many substeps is slow)
+SCENE_SOLVERS = {"fold": "implicit"}
 CONTACT_OPTIONS = ["friction", "restitution", "thickness"]
 BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability", "ccd"]
 
@@ -100,7 +103,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="solver steps per frame (default: the solver's choice; explicit derives "
                         "it from its stability bound)")
     r.add_argument("--res", type=_positive_int, default=None, help="cells along each side")
-    r.add_argument("--solver", choices=SOLVER_NAMES, default="explicit")
+    r.add_argument("--solver", choices=SOLVER_NAMES, default=None,
+                   help="default: the scene's own (implicit for fold, explicit otherwise)")
     r.add_argument("--stiffness", type=_nonneg_float, default=None, help="stretch springs, N/m")
     r.add_argument("--density", type=_positive_float, default=None, help="kg/m^2")
     r.add_argument("--bending", choices=["none", "springs", "dihedral", "quadratic"], default=None)
@@ -130,6 +134,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("name", choices=BENCH_NAMES)
     b.add_argument("args", nargs=argparse.REMAINDER)
 
+    c = sub.add_parser("check", help="self-intersections per frame of a USD file's mesh")
+    c.add_argument("file", help="a .usd/.usda/.usdc with a time-sampled mesh")
+    c.add_argument("--prim", default=None, help="the mesh prim path (default: the first "
+                   "time-sampled mesh)")
+    c.add_argument("--json", action="store_true", help="print the counts as JSON")
+
     sub.add_parser("info", help="versions and devices")
     return p
 
@@ -156,6 +166,8 @@ def cmd_run(args, parser) -> int:
     from .errors import SimulationDiverged
     from .scenes import build_scene
 
+    if args.solver is None:
+        args.solver = SCENE_SOLVERS.get(args.scene, "explicit")
     solver_options = {}
     for opt, (name, solvers) in SOLVER_OPTIONS.items():
         val = getattr(args, opt)
@@ -238,6 +250,57 @@ def cmd_info() -> int:
     return 0
 
 
+def cmd_check(args, parser) -> int:
+    """Per frame, the (edge, triangle) pairs of the mesh that pass through each other (sharing
+    no vertex). Exit status 1 when any frame has one, 2 on an unreadable file."""
+    import json
+
+    import numpy as np
+
+    from .util import quiet_warp
+
+    quiet_warp()
+    path = args.file
+    if not os.path.isfile(path):
+        parser.error(f"check: no such file: {path}")
+    try:
+        from pxr import UsdGeom
+
+        from .usd import read_points
+
+        times, pts, stage = read_points(path, args.prim)
+        prim = next(p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)
+                    and UsdGeom.Mesh(p).GetPointsAttr().GetNumTimeSamples() > 0) \
+            if args.prim is None else stage.GetPrimAtPath(args.prim)
+        mesh = UsdGeom.Mesh(prim)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
+        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
+    except Exception as e:  # noqa: BLE001 - any unreadable stage is a usage error here
+        print(f"warp-cloth check: cannot read a time-sampled mesh from {path}: {e}",
+              file=sys.stderr)
+        return 2
+    from .collision.check import SelfIntersectionChecker
+    from .mesh import TriMesh
+
+    tris, k = [], 0
+    for c in counts:  # fan-triangulate polygons
+        tris += [(idx[k], idx[k + j], idx[k + j + 1]) for j in range(1, int(c) - 1)]
+        k += int(c)
+    topo = TriMesh(pts[0].astype(np.float64), np.asarray(tris), name="checked")
+    chk = SelfIntersectionChecker(topo.triangles, topo.edges, topo.num_vertices)
+    per_frame = [chk(p) for p in pts]
+    bad = [i for i, c in enumerate(per_frame) if c]
+    if args.json:
+        print(json.dumps({"file": path, "frames": len(per_frame), "crossings": per_frame,
+                          "frames_with_crossings": len(bad)}))
+    else:
+        for t, c in zip(times, per_frame):
+            print(f"time {t:g}: {c} crossing (edge, triangle) pairs")
+        print(f"{len(bad)} of {len(per_frame)} frames with crossings; most in a frame: "
+              f"{max(per_frame) if per_frame else 0}")
+    return 1 if bad else 0
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -245,6 +308,8 @@ def main(argv=None) -> int:
         return cmd_run(args, parser)
     if args.command == "bench":
         return cmd_bench(args, parser)
+    if args.command == "check":
+        return cmd_check(args, parser)
     return cmd_info()
 
 

@@ -30,7 +30,8 @@ from .mesh import TriMesh
 from .model import DEFAULT_DENSITY, DEFAULT_STRETCH_STIFFNESS, ClothModel
 from .scenes import _finish, _grid_shape
 
-__all__ = ["drape", "table", "spin", "mesh", "thin", "thin_parts_mesh", "sheet_model", "asset_path"]
+__all__ = ["drape", "table", "spin", "mesh", "thin", "fold", "thin_parts_mesh", "sheet_model",
+           "asset_path"]
 
 #: the meshes shipped with the package (``warp_cloth/assets``; ``assets/make_assets.py`` makes them)
 ASSETS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "assets")
@@ -223,3 +224,33 @@ def thin(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
                           fps=fps, frames=frames, substeps=substeps, corrections=corrections,
                           extra_obstacles=obstacles, strain_bound=strain_bound, name="thin",
                           thickness=thickness, friction=friction, restitution=restitution)
+
+
+def fold(*, solver: str = "implicit", solver_options: dict | None = None, fps: float = 60.0,
+         frames: int = 120, substeps=None, corrections=(), obstacles=(),
+         strain_bound: float = 10.0, thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
+         restitution: float = 0.0, angle: float = 100.0, self_collision: bool = True,
+         **model_args):
+    """A sheet lying on the floor with one half lifted ``angle`` degrees about its middle line
+    (past the vertical, so that it falls over): the lifted half folds down onto the other.
+    Self-collision keeps the two layers apart (``self_collision=False`` lets them pass).
+    Quadratic bending of 1e-4 N m by default: without bending the sheet folds to a crease of
+    zero radius, where the layers cannot be the thickness apart, and the self-collision
+    fail-safe holds the vertices there still (counted in its stats)."""
+    model_args.setdefault("bending", "quadratic")
+    model_args.setdefault("bend_stiffness", 1e-4)
+    model = sheet_model(height=thickness, **model_args)
+    x = model.mesh.vertices.copy()
+    c = float(np.mean(x[:, 0]))
+    a = math.radians(float(angle))
+    up = x[:, 0] > c
+    r = x[up, 0] - c
+    x[up, 0] = c + r * math.cos(a)
+    x[up, 1] = thickness + r * math.sin(a)
+    model.initial_positions = x
+    stage = CollisionStage(model, [Plane(), *obstacles], thickness=thickness, friction=friction,
+                           restitution=restitution, self_collision=self_collision)
+    scene = _finish(model, solver, solver_options, corrections, fps, frames, substeps, (),
+                    strain_bound, "fold", collision=stage)
+    scene.contact, scene.collision = stage.contact, stage
+    return scene

@@ -134,6 +134,8 @@ class ClothModel:
         damping: velocity damping rate in 1/s, ``v <- v exp(-damping dt)`` every step.
         wind: optional `warp_cloth.forces.wind.Wind`.
         velocity: optional initial velocity, (3,) or (N, 3), m/s.
+        positions: optional initial positions (N, 3), m (default: the mesh's vertices, which
+            stay the rest shape either way).
         device: Warp device (default: Warp's default device).
     """
 
@@ -154,6 +156,7 @@ class ClothModel:
         damping: float = 0.0,
         wind=None,
         velocity=None,
+        positions=None,
         device=None,
     ):
         if not isinstance(mesh, TriMesh):
@@ -247,6 +250,15 @@ class ClothModel:
                 raise ValueError("initial velocity must be finite")
             v0[pins] = 0.0
         self.initial_velocity = v0
+        x0 = mesh.vertices
+        if positions is not None:
+            x0 = np.asarray(positions, dtype=np.float64)
+            if x0.shape != (n, 3):
+                raise ValueError(f"positions must have shape ({n}, 3), got {x0.shape}")
+            bad = np.flatnonzero(~np.isfinite(x0).all(axis=1))
+            if len(bad):
+                raise ValueError(f"positions of vertex {int(bad[0])} are not finite")
+        self.initial_positions = x0
 
         # ---- device arrays (built once)
         d = self.device
@@ -315,10 +327,11 @@ class ClothModel:
         return np.asarray(out, dtype=np.int64).reshape(-1, 2)
 
     def state(self) -> State:
-        """A new state at the rest shape with the initial velocity, at time 0."""
+        """A new state at the initial positions (default: the rest shape) with the initial
+        velocity, at time 0."""
         d = self.device
         return State(
-            wp.array(self.mesh.vertices, dtype=wp.vec3, device=d),
+            wp.array(self.initial_positions, dtype=wp.vec3, device=d),
             wp.array(self.initial_velocity, dtype=wp.vec3, device=d),
             wp.zeros(1, dtype=wp.float64, device=d),
         )

@@ -97,6 +97,7 @@ LAZY_SCENES = {
     "spin": "warp_cloth.contact_scenes",
     "mesh": "warp_cloth.contact_scenes",
     "thin": "warp_cloth.contact_scenes",
+    "fold": "warp_cloth.contact_scenes",
 }
 
 

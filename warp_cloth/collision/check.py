@@ -13,7 +13,7 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
-__all__ = ["mesh_edge_crossings"]
+__all__ = ["mesh_edge_crossings", "self_crossings", "SelfIntersectionChecker"]
 
 
 @wp.kernel
@@ -43,3 +43,118 @@ def mesh_edge_crossings(obstacle, positions, edges, t: float = 0.0, device="cpu"
     hit = wp.zeros(len(edges), dtype=int, device=device)
     wp.launch(edge_ray_kernel, len(edges), [obstacle.wp_mesh(device).id, x, e, hit], device=device)
     return hit.numpy().astype(bool)
+
+
+@wp.kernel
+def tri_box_kernel(x: wp.array(dtype=wp.vec3), tris: wp.array2d(dtype=wp.int32),
+                   lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
+    t = wp.tid()
+    a = x[tris[t, 0]]
+    b = x[tris[t, 1]]
+    c = x[tris[t, 2]]
+    lowers[t] = wp.min(a, wp.min(b, c))
+    uppers[t] = wp.max(a, wp.max(b, c))
+
+
+@wp.func
+def segment_crosses_triangle(p: wp.vec3d, q: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d):
+    """True when the segment ``pq`` meets the triangle ``abc`` (Moller-Trumbore, float64; a
+    segment lying in the triangle's plane is not a crossing)."""
+    d = q - p
+    e1 = b - a
+    e2 = c - a
+    h = wp.cross(d, e2)
+    det = wp.dot(e1, h)
+    if wp.abs(det) < wp.float64(1.0e-30):
+        return False
+    f = wp.float64(1.0) / det
+    s = p - a
+    u = f * wp.dot(s, h)
+    if u < wp.float64(0.0) or u > wp.float64(1.0):
+        return False
+    qv = wp.cross(s, e1)
+    v = f * wp.dot(d, qv)
+    if v < wp.float64(0.0) or u + v > wp.float64(1.0):
+        return False
+    t = f * wp.dot(e2, qv)
+    return t >= wp.float64(0.0) and t <= wp.float64(1.0)
+
+
+@wp.kernel
+def self_crossing_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
+                         tris: wp.array2d(dtype=wp.int32), edges: wp.array2d(dtype=wp.int32),
+                         count: wp.array(dtype=int), per_edge: wp.array(dtype=int)):
+    """For edge ``e``: the triangles it passes through, none of which it shares a vertex with."""
+    e = wp.tid()
+    i = edges[e, 0]
+    j = edges[e, 1]
+    p = x[i]
+    q = x[j]
+    query = wp.bvh_query_aabb(bvh, wp.min(p, q), wp.max(p, q))
+    t = int(0)
+    n = int(0)
+    while wp.bvh_query_next(query, t):
+        a = tris[t, 0]
+        b = tris[t, 1]
+        c = tris[t, 2]
+        if a == i or a == j or b == i or b == j or c == i or c == j:
+            continue
+        pd = wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2]))
+        qd = wp.vec3d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]))
+        xa = x[a]
+        xb = x[b]
+        xc = x[c]
+        if segment_crosses_triangle(pd, qd, wp.vec3d(wp.float64(xa[0]), wp.float64(xa[1]), wp.float64(xa[2])),
+                                    wp.vec3d(wp.float64(xb[0]), wp.float64(xb[1]), wp.float64(xb[2])),
+                                    wp.vec3d(wp.float64(xc[0]), wp.float64(xc[1]), wp.float64(xc[2]))):
+            n += 1
+    per_edge[e] = n
+    if n > 0:
+        wp.atomic_add(count, 0, n)
+
+
+class SelfIntersectionChecker:
+    """Counts the (edge, triangle) pairs of a cloth mesh whose edge passes through the triangle,
+    for pairs that share no vertex (a surface that passes through itself has such pairs; one
+    that does not has none). A BVH over the triangles' boxes finds the candidates, an exact
+    float64 segment-triangle test decides. For tests, `RunStats` (``check_intersections``) and
+    ``warp-cloth check``."""
+
+    def __init__(self, triangles, edges, num_vertices: int, device="cpu"):
+        self.device = device
+        self.tris = wp.array(np.asarray(triangles, dtype=np.int32), dtype=wp.int32, ndim=2,
+                             device=device)
+        self.edges = wp.array(np.asarray(edges, dtype=np.int32).reshape(-1, 2), dtype=wp.int32,
+                              ndim=2, device=device)
+        self.x = wp.zeros(num_vertices, dtype=wp.vec3, device=device)
+        nt = self.tris.shape[0]
+        self.lowers = wp.zeros(nt, dtype=wp.vec3, device=device)
+        self.uppers = wp.zeros(nt, dtype=wp.vec3, device=device)
+        self.count = wp.zeros(1, dtype=int, device=device)
+        self.per_edge = wp.zeros(self.edges.shape[0], dtype=int, device=device)
+        self.bvh = None
+
+    def __call__(self, positions) -> int:
+        """Crossing (edge, triangle) pairs of the cloth at ``positions`` (N, 3) (host array or
+        a device ``wp.array`` of vec3)."""
+        if isinstance(positions, wp.array):
+            wp.copy(self.x, positions)
+        else:
+            self.x.assign(np.asarray(positions, dtype=np.float32))
+        wp.launch(tri_box_kernel, self.tris.shape[0], [self.x, self.tris, self.lowers, self.uppers],
+                  device=self.device)
+        if self.bvh is None:
+            self.bvh = wp.Bvh(self.lowers, self.uppers)
+        else:
+            self.bvh.refit()
+        self.count.zero_()
+        wp.launch(self_crossing_kernel, self.edges.shape[0],
+                  [self.bvh.id, self.x, self.tris, self.edges, self.count, self.per_edge],
+                  device=self.device)
+        return int(self.count.numpy()[0])
+
+
+def self_crossings(positions, triangles, edges, device="cpu") -> int:
+    """(edge, triangle) pairs sharing no vertex whose edge passes through the triangle."""
+    positions = np.asarray(positions)
+    return SelfIntersectionChecker(triangles, edges, len(positions), device)(positions)

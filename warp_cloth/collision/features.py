@@ -15,9 +15,9 @@ default 32 x 32 sheet, and pays nothing; a blade or a thin tube does.
 Each step, on the paths from ``x_start`` to ``x`` (cloth) and from the pose at ``t`` to the pose
 at ``t + dt`` (obstacle):
 
-- **broad phase**: swept boxes of the cloth's triangles and edges (inflated by the thickness and
-  a margin) in two `wp.Bvh`, refitted; each sharp vertex queries the triangle BVH and each sharp
-  edge the edge BVH with its own swept box (no pair whose boxes overlap is missed);
+- **broad phase** (`warp_cloth.collision.broadphase`): swept boxes of the cloth's triangles and
+  edges (inflated by the thickness and a margin) in two refitted `wp.Bvh`; each sharp vertex
+  queries the triangle BVH and each sharp edge the edge BVH with its own swept box;
 - **narrow phase**: the continuous vertex-triangle and edge-edge tests of
   `warp_cloth.collision.geometry` (float64, minimum separation = the thickness), which also
   report pairs that end within the thickness;
@@ -32,10 +32,8 @@ at ``t + dt`` (obstacle):
 Implicit Euler and projective dynamics get the entries of the predicted path in their solve
 (`CollisionStage.detect`), like vertex contacts.
 
-No host decision: the BVHs are built on the first call (outside any capture: the scene runner
-captures from its second frame) and refitted after (Warp records a CPU refit in a captured graph
-and re-runs it on replay; on CUDA the refit is a kernel). Entries past the record's capacity are
-counted (``stats``), not silent.
+No host decision (the broad phase's refits are captured). Entries past the record's capacity
+are counted (``stats``), not silent.
 """
 
 from __future__ import annotations
@@ -45,6 +43,7 @@ import math
 import numpy as np
 import warp as wp
 
+from .broadphase import ClothBroadPhase
 from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, point_triangle_closest,
                        segment_segment_closest)
 from .record import KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, record_append
@@ -110,34 +109,6 @@ def feature_world_kernel(local: wp.array(dtype=wp.vec3), pose_of: wp.array(dtype
     p1[i] = wp.transform_point(poses[5 * k + 1], local[i])
 
 
-@wp.kernel
-def cloth_bounds_kernel(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
-                        tris: wp.array2d(dtype=wp.int32), edges: wp.array2d(dtype=wp.int32),
-                        num_tris: int, pad: float, lowers: wp.array(dtype=wp.vec3),
-                        uppers: wp.array(dtype=wp.vec3), elowers: wp.array(dtype=wp.vec3),
-                        euppers: wp.array(dtype=wp.vec3)):
-    """Swept boxes (start and end positions, inflated by ``pad``): threads below ``num_tris``
-    for triangles, the rest for edges."""
-    k = wp.tid()
-    lo = wp.vec3(1.0e30)
-    hi = wp.vec3(-1.0e30)
-    if k < num_tris:
-        for c in range(3):
-            i = tris[k, c]
-            lo = wp.min(lo, wp.min(x0[i], x1[i]))
-            hi = wp.max(hi, wp.max(x0[i], x1[i]))
-        lowers[k] = lo - wp.vec3(pad)
-        uppers[k] = hi + wp.vec3(pad)
-    else:
-        e = k - num_tris
-        for c in range(2):
-            i = edges[e, c]
-            lo = wp.min(lo, wp.min(x0[i], x1[i]))
-            hi = wp.max(hi, wp.max(x0[i], x1[i]))
-        elowers[e] = lo - wp.vec3(pad)
-        euppers[e] = hi + wp.vec3(pad)
-
-
 @wp.func
 def d3(v: wp.vec3):
     return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
@@ -158,12 +129,13 @@ def vertex_triangle_kernel(
     x1: wp.array(dtype=wp.vec3),
     tris: wp.array2d(dtype=wp.int32),
     gap: float,
+    sep: float,
     mu_t: wp.array(dtype=float),
     rec: ContactRecord,
 ):
     """A sharp obstacle vertex against the cloth triangles its path comes within ``gap`` of:
-    an entry keeping the triangle ``gap`` away from the vertex's end position, on the side the
-    triangle was at the time of impact."""
+    an entry keeping the triangle ``sep`` (the thickness) away from the vertex's end position,
+    on the side the triangle was at the time of impact."""
     i = wp.tid()
     a0 = p0[i]
     a1 = p1[i]
@@ -200,7 +172,7 @@ def vertex_triangle_kernel(
                 n = -n
         w = wp.vec4(float(bw[0]), float(bw[1]), float(bw[2]), 0.0)
         record_append(rec, KIND_VERTEX_TRIANGLE, wp.vec4i(ia, ib, ic, -1), w, n,
-                      wp.dot(n, a1) + gap, a1, mu_t[source[i]], 0.0, source[i])
+                      wp.dot(n, a1) + sep, a1, mu_t[source[i]], 0.0, source[i])
 
 
 @wp.kernel
@@ -214,11 +186,12 @@ def edge_edge_kernel(
     x1: wp.array(dtype=wp.vec3),
     edges: wp.array2d(dtype=wp.int32),
     gap: float,
+    sep: float,
     mu_t: wp.array(dtype=float),
     rec: ContactRecord,
 ):
     """A sharp obstacle edge against the cloth edges its path comes within ``gap`` of: an entry
-    keeping the cloth edge ``gap`` away from the obstacle edge's end position."""
+    keeping the cloth edge ``sep`` (the thickness) away from the obstacle edge's end position."""
     k = wp.tid()
     ja = fedges[k, 0]
     jb = fedges[k, 1]
@@ -255,22 +228,24 @@ def edge_edge_kernel(
             n = wp.normalize(n)
             s0 = float(so)
             t0 = float(tc)
-            sep = (x0[ic] + t0 * (x0[id] - x0[ic])) - (a0 + s0 * (b0 - a0))
-            if wp.dot(sep, n) < 0.0:
+            side = (x0[ic] + t0 * (x0[id] - x0[ic])) - (a0 + s0 * (b0 - a0))
+            if wp.dot(side, n) < 0.0:
                 n = -n
         fs = float(so)
         ft2 = float(tc)
         o1 = a1 + fs * (b1 - a1)
         w = wp.vec4(1.0 - ft2, ft2, 0.0, 0.0)
-        record_append(rec, KIND_EDGE_EDGE, wp.vec4i(ic, id, -1, -1), w, n, wp.dot(n, o1) + gap,
+        record_append(rec, KIND_EDGE_EDGE, wp.vec4i(ic, id, -1, -1), w, n, wp.dot(n, o1) + sep,
                       o1, mu_t[src], 0.0, src)
 
 
 @wp.kernel
 def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.vec3),
                           inv_mass: wp.array(dtype=float), acc: wp.array(dtype=wp.vec3),
-                          cnt: wp.array(dtype=int), num_threads: int):
-    """One Jacobi round: each violated entry's correction, shared by mass and weight."""
+                          cnt: wp.array(dtype=int), violated: wp.array(dtype=int),
+                          tol: float, num_threads: int):
+    """One Jacobi round: each violated entry's correction, shared by mass and weight (the
+    number of entries violated by more than ``tol`` is added to ``violated[0]``)."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(first + t, count, num_threads):
@@ -285,6 +260,8 @@ def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.v
                 g = g + w[j] * wp.dot(n, x[v])
                 den = den + w[j] * w[j] * inv_mass[v]
         if g < 0.0 and den > 0.0:
+            if g < -tol:
+                wp.atomic_add(violated, 0, 1)
             lam = -g / den
             for j in range(4):
                 v = vid[j]
@@ -351,9 +328,7 @@ class FeatureContact:
         self.num_edges = int(sum(len(e) for e in fedges))
         if not self.active:
             return
-        tris = np.asarray(model.mesh.triangles, dtype=np.int32)
-        edges = np.asarray(model.mesh.edges, dtype=np.int32)
-        self.num_tris, self.num_cloth_edges = len(tris), len(edges)
+        self.broad = ClothBroadPhase(model)
         self.local = wp.array(np.concatenate(local), dtype=wp.vec3, device=d)
         self.pose_of = wp.array(np.concatenate(pose_of).astype(np.int32), dtype=int, device=d)
         self.source = wp.array(np.concatenate(src).astype(np.int32), dtype=int, device=d)
@@ -361,19 +336,13 @@ class FeatureContact:
                                dtype=wp.int32, ndim=2, device=d)
         self.p0 = wp.zeros(base, dtype=wp.vec3, device=d)
         self.p1 = wp.zeros(base, dtype=wp.vec3, device=d)
-        self.tris = wp.array(tris, dtype=wp.int32, ndim=2, device=d)
-        self.edges = wp.array(edges, dtype=wp.int32, ndim=2, device=d)
-        self.lowers = wp.zeros(len(tris), dtype=wp.vec3, device=d)
-        self.uppers = wp.zeros(len(tris), dtype=wp.vec3, device=d)
-        self.elowers = wp.zeros(len(edges), dtype=wp.vec3, device=d)
-        self.euppers = wp.zeros(len(edges), dtype=wp.vec3, device=d)
-        self.tri_bvh = self.edge_bvh = None
         ordered = contact.analytic + contact.meshes
         fr = [(ob.friction if ob.friction is not None else contact.friction) for ob in ordered]
         self.mu_t = wp.array(np.asarray(fr, dtype=np.float32), dtype=float, device=d)
         n = model.num_vertices
         self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
         self.cnt = wp.zeros(n, dtype=int, device=d)
+        self.violated = wp.zeros(1, dtype=int, device=d)
         self.threads = max(1, -(-n // 16))
 
     @property
@@ -390,22 +359,15 @@ class FeatureContact:
         gap = self.thickness + margin
         wp.launch(feature_world_kernel, self.num_vertices,
                   [self.local, self.pose_of, self.contact.poses, self.p0, self.p1], device=d)
-        wp.launch(cloth_bounds_kernel, self.num_tris + self.num_cloth_edges,
-                  [x0, x1, self.tris, self.edges, self.num_tris, gap, self.lowers, self.uppers,
-                   self.elowers, self.euppers], device=d)
-        if self.tri_bvh is None:
-            self.tri_bvh = wp.Bvh(self.lowers, self.uppers)
-            self.edge_bvh = wp.Bvh(self.elowers, self.euppers)
-        else:
-            self.tri_bvh.refit()
-            self.edge_bvh.refit()
+        b = self.broad
+        b.update(x0, x1, gap)
         wp.launch(vertex_triangle_kernel, self.num_vertices,
-                  [self.tri_bvh.id, self.p0, self.p1, self.source, x0, x1, self.tris, gap,
-                   self.mu_t, record], device=d)
+                  [b.tri_bvh.id, self.p0, self.p1, self.source, x0, x1, b.tris, gap,
+                   self.thickness, self.mu_t, record], device=d)
         if self.num_edges:
             wp.launch(edge_edge_kernel, self.num_edges,
-                      [self.edge_bvh.id, self.p0, self.p1, self.fedges, self.source, x0, x1,
-                       self.edges, gap, self.mu_t, record], device=d)
+                      [b.edge_bvh.id, self.p0, self.p1, self.fedges, self.source, x0, x1,
+                       b.edges, gap, self.thickness, self.mu_t, record], device=d)
 
     def respond(self, state, dt: float, record, first: int = 0) -> None:
         """`rounds` Jacobi rounds over the record's entries from ``first`` on."""
@@ -414,8 +376,8 @@ class FeatureContact:
         d, m = self.device, self.model
         for _ in range(self.rounds):
             wp.launch(jacobi_project_kernel, self.threads,
-                      [record, first, state.x, m.inv_mass, self.acc, self.cnt, self.threads],
-                      device=d)
+                      [record, first, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
+                       0.0, self.threads], device=d)
             wp.launch(jacobi_apply_kernel, m.num_vertices,
                       [state.x, state.v, self.acc, self.cnt, 1.0 / dt], device=d)
 

@@ -38,11 +38,21 @@ import math
 
 import warp as wp
 
-from .contact import ObstacleContact
+from .contact import DEFAULT_THICKNESS, ObstacleContact
 from .obstacles import Obstacle
 from .record import make_record
 
 __all__ = ["CollisionStage", "DEFAULT_SOLVE_MARGIN"]
+
+
+def _positive(name, value) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number of metres, got {value!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be > 0 metres, got {value}")
+    return value
 
 #: m; a vertex whose predicted path comes this far beyond the contact thickness of an obstacle
 #: gets a constraint in the record (the solve may move it that much off its prediction)
@@ -61,6 +71,11 @@ class CollisionStage:
         edges: also keep the cloth's edges and triangles out of the meshes' sharp features
             (`warp_cloth.collision.features`; default True). False tests vertices only (for a
             model whose mesh edges are not a surface, e.g. free particles).
+        self_collision: True (or a `SelfCollision`) to keep the cloth from passing through
+            itself (`warp_cloth.collision.self_collision`; default False). Obstacles may then be
+            empty.
+        self_thickness: m, > 0: the distance kept between non-adjacent parts of the cloth
+            (default: the obstacle contact thickness).
         **contact_options: `ObstacleContact` options (``thickness``, ``friction``,
             ``restitution``, ``ccd``, ``slack``, ...), when ``obstacles`` are shapes.
 
@@ -73,8 +88,10 @@ class CollisionStage:
 
     capturable = True
 
-    def __init__(self, model, obstacles, *, solve_margin: float = DEFAULT_SOLVE_MARGIN,
-                 edges: bool = True, **contact_options):
+    def __init__(self, model, obstacles=(), *, solve_margin: float = DEFAULT_SOLVE_MARGIN,
+                 edges: bool = True, self_collision=False, self_thickness: float | None = None,
+                 **contact_options):
+        contact = None
         if isinstance(obstacles, ObstacleContact):
             if contact_options:
                 raise ValueError("CollisionStage: give contact options to the ObstacleContact, "
@@ -86,7 +103,15 @@ class CollisionStage:
         else:
             if isinstance(obstacles, Obstacle):
                 obstacles = [obstacles]
-            contact = ObstacleContact(model, obstacles, **contact_options)
+            obstacles = list(obstacles or ())
+            if obstacles:
+                contact = ObstacleContact(model, obstacles, **contact_options)
+            elif not self_collision:
+                raise ValueError("CollisionStage needs obstacles or self_collision=True")
+            elif set(contact_options) - {"thickness"}:
+                raise ValueError(f"CollisionStage: obstacle contact options "
+                                 f"{sorted(set(contact_options) - {'thickness'})} without "
+                                 "obstacles")
         try:
             solve_margin = float(solve_margin)
         except (TypeError, ValueError):
@@ -102,8 +127,21 @@ class CollisionStage:
         from .features import FeatureContact
 
         self.features = FeatureContact(model, contact if edges else None)
-        # one vertex-obstacle entry per (vertex, obstacle) at most, and the features' share
-        self.capacity = model.num_vertices * len(contact.obstacles) + self.features.capacity
+        # self-collision (off by default: it costs a broad phase over the cloth every step)
+        self.self_collision = None
+        if self_collision:
+            from .self_collision import SelfCollision
+
+            if isinstance(self_collision, SelfCollision):
+                self.self_collision = self_collision
+            else:
+                th = (self_thickness if self_thickness is not None else
+                      contact.thickness if contact is not None else
+                      contact_options.get("thickness", DEFAULT_THICKNESS))
+                self.self_collision = SelfCollision(model, _positive("self_thickness", th))
+        n_obs = len(contact.obstacles) if contact is not None else 0
+        # one vertex-obstacle entry per (vertex, obstacle) at most, and the pairs' shares
+        self.capacity = model.num_vertices * n_obs + self.features.capacity
         self.record = make_record(self.capacity, self.device)
         self.pair_record = (make_record(self.features.capacity, self.device)
                             if self.features.active else None)
@@ -111,57 +149,73 @@ class CollisionStage:
     # ------------------------------------------------------------------ what it holds
     @property
     def obstacles(self) -> list:
-        return list(self.contact.obstacles)
+        return list(self.contact.obstacles) if self.contact is not None else []
 
     @property
     def thickness(self) -> float:
-        return self.contact.thickness
+        if self.contact is not None:
+            return self.contact.thickness
+        return self.self_collision.thickness
 
     # ------------------------------------------------------------------ detection
     def detect(self, x_start, x_pred, dt: float, time) -> None:
         """Fill `record` with the constraints of the predicted paths ``x_start -> x_pred``
         (``time``: the device clock at the step's start). Capturable: counts stay on the device."""
         self.record.count.zero_()
-        self.contact.detect(x_pred, x_start, dt, time, self.solve_margin, self.record)
-        self.features.detect(x_start, x_pred, self.solve_margin, self.record)
+        if self.contact is not None:
+            self.contact.detect(x_pred, x_start, dt, time, self.solve_margin, self.record)
+            self.features.detect(x_start, x_pred, self.solve_margin, self.record)
+        # self-contacts are not taken into the solve: as penalty terms with their diagonal-only
+        # Hessian (four moving vertices) Newton did not converge and the folded sheet gained
+        # energy (measured on the fold scene); `resolve` handles them after the solve
 
     # ------------------------------------------------------------------ response
     def resolve(self, state, x_start, dt: float) -> None:
         """The final guarantee after the solve and the limits: `ObstacleContact.apply` (every
         vertex), then the sharp mesh features against the cloth's edges and triangles on the
         actual paths (`FeatureContact`)."""
-        self.contact.apply(state, x_start, dt)
-        self._features(state, x_start, dt)
+        if self.contact is not None:
+            self.contact.apply(state, x_start, dt)
+        self._pairs(state, x_start, dt)
 
-    def _features(self, state, x_start, dt):
-        """The sharp features against the cloth's edges and triangles on the actual paths, then
-        vertex contact again for the vertices that response moved (it may push one into
-        another surface; the others are not approaching and are left as they are)."""
+    def _pairs(self, state, x_start, dt):
+        """The sharp features against the cloth's edges and triangles, then self-collision, on
+        the actual paths; then vertex contact again for the vertices those responses moved
+        (one may push a vertex into another surface; the others are not approaching and are
+        left as they are)."""
+        again = False
         if self.pair_record is not None:
             self.pair_record.count.zero_()
             self.features.detect(x_start, state.x, 0.0, self.pair_record)
             self.features.respond(state, dt, self.pair_record)
+            again = True
+        if self.self_collision is not None:
+            self.self_collision.resolve(state, x_start, dt)
+            again = True
+        if again and self.contact is not None:
             self.contact.apply(state, x_start, dt)
 
     # position-based iterations
     def begin_iterations(self, x, x_start, dt: float, time=None) -> None:
-        self.contact.begin_iterations(x, x_start, dt, time)
+        if self.contact is not None:
+            self.contact.begin_iterations(x, x_start, dt, time)
 
     def project_positions(self, x, x_start, dt: float, time=None) -> None:
-        self.contact.project_positions(x, x_start, dt, time)
+        if self.contact is not None:
+            self.contact.project_positions(x, x_start, dt, time)
 
     # a solver's vertex update fused with the far tests
     @property
     def fusable(self) -> bool:
-        return self.contact.fusable
+        return self.contact is not None and self.contact.fusable
 
     def integrate_and_apply(self, state, x_start, f, gravity, decay, dt, update) -> None:
         """The solver's vertex update with `resolve` in the same pass (`ObstacleContact.
         integrate_and_apply`), then the sharp features (which need every start position)."""
-        if self.pair_record is not None:
+        if self.pair_record is not None or self.self_collision is not None:
             wp.copy(x_start, state.x)
         self.contact.integrate_and_apply(state, x_start, f, gravity, decay, dt, update)
-        self._features(state, x_start, dt)
+        self._pairs(state, x_start, dt)
 
     # ------------------------------------------------------------------ reports
     @property
@@ -174,12 +228,18 @@ class CollisionStage:
             pc = int(self.pair_record.count.numpy()[0])
             out["feature_contacts"] = min(pc, self.pair_record.vertex.shape[0])
             out["contact_overflow"] += int(self.pair_record.overflow.numpy()[0])
+        if self.self_collision is not None:
+            out.update(self.self_collision.stats)
         return out
 
     def max_penetration(self, state) -> float:
-        return self.contact.max_penetration(state)
+        return self.contact.max_penetration(state) if self.contact is not None else 0.0
 
     def signed_distances(self, positions, t: float):
+        import numpy as np
+
+        if self.contact is None:
+            return np.full((0, len(positions)), np.inf)
         return self.contact.signed_distances(positions, t)
 
     def __repr__(self):

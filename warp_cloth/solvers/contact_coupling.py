@@ -404,7 +404,7 @@ class ContactCoupling:
         self.nblock = wp.zeros(model.num_vertices, dtype=wp.mat33, device=self.device)
         self.active = wp.zeros(1, dtype=int, device=self.device)
         self.threads = max(1, -(-stage.capacity // BATCH))
-        self.sources = len(stage.obstacles)
+        self.sources = max(1, len(stage.obstacles))
         # normal force per (vertex, obstacle) at the end of the last step: friction's bound
         self.lam = wp.zeros(model.num_vertices * self.sources, dtype=float, device=self.device)
 
@@ -454,7 +454,8 @@ class ContactCoupling:
                   [self.record, x, self.model.inv_mass, self.kappa / (dt * dt), self.threads,
                    self.sources, self.lam], device=self.device)
         wp.launch(contact_velocity_kernel, self.threads,
-                  [self.record, x, self.model.inv_mass, 1.0 / dt, self.stage.contact.slack,
+                  [self.record, x, self.model.inv_mass, 1.0 / dt,
+                   self.stage.contact.slack if self.stage.contact is not None else 0.0,
                    self.threads, v],
                   device=self.device)
 

@@ -1,0 +1,294 @@
+"""Self-collision: the cloth's vertices against its triangles and its edges against its edges.
+
+Per step, on the cloth's path from ``x_start`` to ``x`` (``physics.md`` 2.18-2.21):
+
+1. **Broad phase** (`warp_cloth.collision.broadphase`): swept boxes of every triangle and edge,
+   inflated by the thickness, in two refitted `wp.Bvh`; each vertex queries the triangle BVH and
+   each edge the edge BVH with its own inflated swept box, so no pair whose swept boxes overlap
+   is missed. Topological neighbours are skipped (a vertex and its own triangles, edges that
+   share a vertex), and each edge pair is tested once (the lower edge index queries).
+2. **Narrow phase**: the continuous vertex-triangle and edge-edge tests of
+   `warp_cloth.collision.geometry` (conservative advancement in float64) with the thickness as
+   minimum separation: a pair that comes within the thickness at any time of the step, or ends
+   there, is a contact. Each becomes a record entry (`warp_cloth.collision.record`): the four
+   vertices with weights ``(1, -b0, -b1, -b2)`` (vertex-triangle) or ``(1 - s, s, -(1 - t), -t)``
+   (edge-edge), the normal from the second element to the first at the time of impact (the side
+   they were on before meeting) and the thickness as offset: ``n . sum w_j x_j >= h``.
+3. **Response** (Bridson et al. 2002, combined Jacobi-style with atomics): rounds of projection
+   of the violated entries, each moving its vertices along ``n`` by their share
+   ``w_j / m_j / sum w_k^2 / m_k`` of the violation, averaged per vertex, ``v += dx / dt``;
+   then fresh detection on the corrected path, up to ``rounds`` times.
+4. **Fail-safe**: if a path still comes within 5 % of the thickness after the last round (all
+   but touching: a crossing passes through zero distance), the vertices of those entries
+   return to their start positions with zero velocity (rigid, the start of the step being free
+   of crossings); if one still does, the whole cloth returns to its start. Both are counted
+   in ``stats`` (``self_fallback_vertices``, ``self_fallback_all``, per step and summed over
+   the run), never silent.
+
+No host decision: every round is launched, and each does nothing once nothing is left.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .broadphase import ClothBroadPhase
+from .features import d3, f3, jacobi_apply_kernel, jacobi_project_kernel
+from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, point_triangle_closest,
+                       segment_segment_closest)
+from .record import KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, make_record, record_append
+
+wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
+
+__all__ = ["SelfCollision"]
+
+CCD_ITERATIONS = 64
+#: the fail-safe acts on paths that come this close (a fraction of the thickness)
+FAILSAFE_GAP = 0.05
+
+
+@wp.kernel
+def self_vt_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                   tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
+                   inv_mass: wp.array(dtype=float), done: wp.array(dtype=int), rec: ContactRecord):
+    """Vertex ``v`` against the triangles its swept box meets (not its own); nothing once
+    ``done[0]``."""
+    v = wp.tid()
+    if done[0] != 0:
+        return
+    a0 = x0[v]
+    a1 = x1[v]
+    q = wp.bvh_query_aabb(bvh, wp.min(a0, a1) - wp.vec3(gap), wp.max(a0, a1) + wp.vec3(gap))
+    t = int(0)
+    while wp.bvh_query_next(q, t):
+        ia = tris[t, 0]
+        ib = tris[t, 1]
+        ic = tris[t, 2]
+        if ia == v or ib == v or ic == v:
+            continue
+        if inv_mass[v] + inv_mass[ia] + inv_mass[ib] + inv_mass[ic] == 0.0:
+            continue
+        s, toi = ccd_vertex_triangle(d3(a0), d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(a1),
+                                     d3(x1[ia]), d3(x1[ib]), d3(x1[ic]), wp.float64(gap),
+                                     CCD_ITERATIONS)
+        if s == CCD_MISS:
+            continue
+        ft = float(toi)
+        pa = x0[ia] + ft * (x1[ia] - x0[ia])
+        pb = x0[ib] + ft * (x1[ib] - x0[ib])
+        pc = x0[ic] + ft * (x1[ic] - x0[ic])
+        pv = a0 + ft * (a1 - a0)
+        cq, bw = point_triangle_closest(d3(pv), d3(pa), d3(pb), d3(pc))
+        d = pv - f3(cq)  # from the triangle to the vertex
+        n = wp.vec3(0.0)
+        if wp.length(d) > 1.0e-9:
+            n = wp.normalize(d)
+        else:
+            n = wp.cross(pb - pa, pc - pa)
+            if wp.length(n) < 1.0e-12:
+                continue
+            n = wp.normalize(n)
+            w0 = wp.vec3(float(bw[0]), float(bw[1]), float(bw[2]))
+            if wp.dot(a0 - (w0[0] * x0[ia] + w0[1] * x0[ib] + w0[2] * x0[ic]), n) < 0.0:
+                n = -n
+        w = wp.vec4(1.0, -float(bw[0]), -float(bw[1]), -float(bw[2]))
+        record_append(rec, KIND_VERTEX_TRIANGLE, wp.vec4i(v, ia, ib, ic), w, n, sep,
+                      wp.vec3(0.0), 0.0, 0.0, -1)
+
+
+@wp.kernel
+def self_ee_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                   edges: wp.array2d(dtype=wp.int32), gap: float, sep: float,
+                   inv_mass: wp.array(dtype=float), done: wp.array(dtype=int), rec: ContactRecord):
+    """Edge ``e`` against the edges of higher index its swept box meets (none sharing a
+    vertex); nothing once ``done[0]``."""
+    e = wp.tid()
+    if done[0] != 0:
+        return
+    ia = edges[e, 0]
+    ib = edges[e, 1]
+    lo = wp.min(wp.min(x0[ia], x1[ia]), wp.min(x0[ib], x1[ib])) - wp.vec3(gap)
+    hi = wp.max(wp.max(x0[ia], x1[ia]), wp.max(x0[ib], x1[ib])) + wp.vec3(gap)
+    q = wp.bvh_query_aabb(bvh, lo, hi)
+    f = int(0)
+    while wp.bvh_query_next(q, f):
+        if f <= e:
+            continue
+        ic = edges[f, 0]
+        id = edges[f, 1]
+        if ic == ia or ic == ib or id == ia or id == ib:
+            continue
+        if inv_mass[ia] + inv_mass[ib] + inv_mass[ic] + inv_mass[id] == 0.0:
+            continue
+        s, toi = ccd_edge_edge(d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(x0[id]), d3(x1[ia]),
+                               d3(x1[ib]), d3(x1[ic]), d3(x1[id]), wp.float64(gap), CCD_ITERATIONS)
+        if s == CCD_MISS:
+            continue
+        ft = float(toi)
+        pa = x0[ia] + ft * (x1[ia] - x0[ia])
+        pb = x0[ib] + ft * (x1[ib] - x0[ib])
+        pc = x0[ic] + ft * (x1[ic] - x0[ic])
+        pd = x0[id] + ft * (x1[id] - x0[id])
+        sa, tc, c1, c2 = segment_segment_closest(d3(pa), d3(pb), d3(pc), d3(pd))
+        d = f3(c1) - f3(c2)  # from the second edge to the first
+        n = wp.vec3(0.0)
+        if wp.length(d) > 1.0e-9:
+            n = wp.normalize(d)
+        else:
+            n = wp.cross(pb - pa, pd - pc)
+            if wp.length(n) < 1.0e-12:
+                continue
+            n = wp.normalize(n)
+            fs = float(sa)
+            fc = float(tc)
+            side = (x0[ia] + fs * (x0[ib] - x0[ia])) - (x0[ic] + fc * (x0[id] - x0[ic]))
+            if wp.dot(side, n) < 0.0:
+                n = -n
+        s1 = float(sa)
+        t1 = float(tc)
+        w = wp.vec4(1.0 - s1, s1, -(1.0 - t1), -t1)
+        record_append(rec, KIND_EDGE_EDGE, wp.vec4i(ia, ib, ic, id), w, n, sep, wp.vec3(0.0),
+                      0.0, 0.0, -1)
+
+
+@wp.kernel
+def revert_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                  x_start: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float),
+                  everything: int, stats: wp.array(dtype=int),
+                  slot: int, num_threads: int):
+    """Fail-safe: the vertices of the remaining entries (``everything``: all vertices, once any
+    entry remains) back at their start positions with zero velocity."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    if count == 0:
+        return
+    if everything != 0:
+        for i in range(t, x.shape[0], num_threads):
+            if inv_mass[i] > 0.0:
+                x[i] = x_start[i]
+                v[i] = wp.vec3(0.0)
+        if t == 0:
+            stats[slot] = stats[slot] + 1
+        return
+    for e in range(t, count, num_threads):
+        vid = rec.vertex[e]
+        for j in range(4):
+            i = vid[j]
+            if i >= 0 and inv_mass[i] > 0.0:
+                x[i] = x_start[i]
+                v[i] = wp.vec3(0.0)
+                wp.atomic_add(stats, slot, 1)
+
+
+@wp.kernel
+def accumulate_kernel(counters: wp.array(dtype=int), totals: wp.array(dtype=int)):
+    i = wp.tid()
+    totals[i] = totals[i] + counters[i]
+
+
+@wp.kernel
+def round_end_kernel(rec: ContactRecord, violated: wp.array(dtype=int), done: wp.array(dtype=int),
+                     stats: wp.array(dtype=int)):
+    """After a round: its contacts and overflow into the step's counters; ``done`` once a round's
+    projection found no entry violated by more than 1 % of the thickness (the next detections
+    would find the same pairs, already apart)."""
+    if done[0] == 0:
+        stats[0] = stats[0] + wp.min(rec.count[0], rec.vertex.shape[0])
+        stats[1] = stats[1] + rec.overflow[0]
+        if violated[0] == 0:
+            done[0] = 1
+    violated[0] = 0
+
+
+class SelfCollision:
+    """Self-collision of the cloth (module docstring).
+
+    Args:
+        model: the `ClothModel`.
+        thickness: m, > 0: the minimum distance kept between non-adjacent parts of the cloth.
+        rounds: detection + response rounds per step (default 4).
+        iterations: Jacobi projection rounds per detection (default 4).
+        capacity: record entries per detection (default ``16 * (vertices + edges)``); more are
+            counted in ``stats["self_overflow"]``.
+    """
+
+    def __init__(self, model, thickness: float, rounds: int = 4, iterations: int = 4,
+                 capacity: int | None = None):
+        self.model = model
+        self.device = d = model.device
+        self.thickness = float(thickness)
+        self.rounds, self.iterations = int(rounds), int(iterations)
+        if self.rounds < 1 or self.iterations < 1:
+            raise ValueError("self-collision rounds and iterations must be >= 1")
+        self.broad = ClothBroadPhase(model)
+        n = model.num_vertices
+        self.capacity = int(capacity or 16 * (n + self.broad.num_edges))
+        self.record = make_record(self.capacity, d)
+        self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.cnt = wp.zeros(n, dtype=int, device=d)
+        self.threads = max(1, -(-self.capacity // 16))
+        # per step: [contacts found (all rounds), overflow, vertices reverted, whole reverts]
+        self.counters = wp.zeros(4, dtype=int, device=d)
+        self.totals = wp.zeros(4, dtype=int, device=d)  # the same, summed over all steps
+        self.done = wp.zeros(1, dtype=int, device=d)
+        self.violated = wp.zeros(1, dtype=int, device=d)
+        self._never = wp.zeros(1, dtype=int, device=d)
+
+    def detect(self, x0, x1, gap: float, record, done=None) -> None:
+        """Self-contacts on the paths ``x0 -> x1`` that come within ``gap`` appended to
+        ``record`` as constraints keeping the thickness (none while ``done[0]``)."""
+        b, m, d = self.broad, self.model, self.device
+        done = self._never if done is None else done
+        b.update(x0, x1, gap)
+        wp.launch(self_vt_kernel, m.num_vertices,
+                  [b.tri_bvh.id, x0, x1, b.tris, gap, self.thickness, m.inv_mass, done, record],
+                  device=d)
+        wp.launch(self_ee_kernel, b.num_edges,
+                  [b.edge_bvh.id, x0, x1, b.edges, gap, self.thickness, m.inv_mass, done,
+                   record], device=d)
+
+    def _project(self, state, dt):
+        m, d = self.model, self.device
+        for _ in range(self.iterations):
+            wp.launch(jacobi_project_kernel, self.threads,
+                      [self.record, 0, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
+                       0.01 * self.thickness, self.threads], device=d)
+            wp.launch(jacobi_apply_kernel, m.num_vertices,
+                      [state.x, state.v, self.acc, self.cnt, 1.0 / dt], device=d)
+
+    def resolve(self, state, x_start, dt: float) -> None:
+        """Rounds of detection and response on ``x_start -> state.x``, then the fail-safe.
+        Once a round's projection finds every contact satisfied (``done``), the later rounds
+        and the fail-safe's detections return at once (device flag: no host read)."""
+        m, d = self.model, self.device
+        self.counters.zero_()
+        self.done.zero_()
+        self.violated.zero_()
+        for _ in range(self.rounds):
+            self.record.count.zero_()
+            self.record.overflow.zero_()
+            self.detect(x_start, state.x, self.thickness, self.record, self.done)
+            self._project(state, dt)
+            wp.launch(round_end_kernel, 1, [self.record, self.violated, self.done,
+                                            self.counters], device=d)
+        # what is left after the last round: paths that still come within 5 % of the thickness
+        # (all but touching: a crossing would pass through zero), fresh detection. Pairs merely
+        # closer than the thickness (a fold tighter than it, a contact the rounds did not
+        # separate fully) are not a failure and keep their motion
+        gap = FAILSAFE_GAP * self.thickness
+        for everything in (0, 1):
+            self.record.count.zero_()
+            self.detect(x_start, state.x, gap, self.record, self.done)
+            wp.launch(revert_kernel, self.threads,
+                      [self.record, state.x, state.v, x_start, m.inv_mass, everything,
+                       self.counters, 2 + everything, self.threads], device=d)
+        wp.launch(accumulate_kernel, 4, [self.counters, self.totals], device=d)
+
+    @property
+    def stats(self) -> dict:
+        """The last step's counts, and (``*_total``) their sums over every step so far."""
+        c, t = self.counters.numpy(), self.totals.numpy()
+        keys = ("self_contacts", "self_overflow", "self_fallback_vertices", "self_fallback_all")
+        out = {k: int(v) for k, v in zip(keys, c)}
+        out.update({k + "_total": int(v) for k, v in zip(keys, t)})
+        return out
