@@ -189,11 +189,15 @@ class CollisionStage:
             self.features.detect(x_start, state.x, 0.0, self.pair_record)
             self.features.respond(state, dt, self.pair_record)
             again = True
-        if self.self_collision is not None:
-            self.self_collision.resolve(state, x_start, dt)
-            again = True
         if again and self.contact is not None:
             self.contact.apply(state, x_start, dt)
+        if self.self_collision is not None:
+            # last: obstacle contact's projection can push one layer of a fold through another
+            # (measured: 88 crossing pairs on the fold). Its response splits corrections between
+            # the layers, so a layer resting on an obstacle can end up to about two thirds of
+            # the thickness closer to it than the thickness (measured 3.3 mm of 5 on the fold);
+            # never through it
+            self.self_collision.resolve(state, x_start, dt)
 
     # position-based iterations
     def begin_iterations(self, x, x_start, dt: float, time=None) -> None:
