@@ -111,3 +111,16 @@ def test_default_fold_on_the_floor_stays_above_it():
     assert max(crossings) == 0
     assert min(low) > th / 3.0 - 1e-4
     assert scene.state.positions()[:, 1].max() < 0.1  # folded
+
+
+def test_model_initial_positions_are_checked():
+    from warp_cloth import ClothModel
+
+    mesh = sheet_model(res=2).mesh
+    x = mesh.vertices + [0.0, 0.1, 0.0]
+    assert np.allclose(ClothModel(mesh, positions=x).state().positions(), x, atol=1e-6)
+    with pytest.raises(ValueError, match="shape"):
+        ClothModel(mesh, positions=x[:-1])
+    x[4, 1] = np.nan
+    with pytest.raises(ValueError, match="vertex 4"):
+        ClothModel(mesh, positions=x)
