@@ -210,12 +210,13 @@ def test_impulse_properties(rng, mu_n, mu_t):
         assert stick.any() and (~stick).any()
 
 
+@pytest.mark.parametrize("solver_name", SOLVERS)
 @pytest.mark.parametrize("restitution", [0.0, 1.0])
-def test_restitution_single_particle(restitution):
+def test_restitution_single_particle(restitution, solver_name):
     model, st = particles(np.array([[0.0, 0.3, 0.0]]))
     model.gravity = (0.0, -9.81, 0.0)
     contact = ObstacleContact(model, [Plane()], restitution=restitution, friction=0.0)
-    solver = make_solver("explicit", model)
+    solver = make_solver(solver_name, model)
     solver.add_correction(contact)
     dt = 1e-3
     speeds, heights, vys = [], [], []

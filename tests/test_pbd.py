@@ -332,3 +332,20 @@ def test_cli_runs_pbd(tmp_usd):
     import os
 
     assert os.path.getsize(tmp_usd) > 0
+
+
+def test_spring_of_zero_stiffness_is_no_constraint():
+    """A spring of stiffness 0 exerts nothing: PBD must not turn it into a rigid link (issue 14)."""
+    from warp_cloth import ClothModel, TriMesh
+
+    mesh = TriMesh.grid(1, 1, size=0.1, plane="xz")
+    model = ClothModel(mesh, stretch_stiffness=0.0, gravity=(0.0, 0.0, 0.0),
+                       velocity=[[1.0, 0, 0], [-1.0, 0, 0], [0, 0, 0], [0, 0, 0]])
+    solver = PositionBased(model)
+    assert solver.num_constraints == 0
+    st = model.state()
+    for _ in range(10):
+        solver.step(st, 0.01)
+    x = st.positions()
+    np.testing.assert_allclose(x[0] - mesh.vertices[0], [0.1, 0, 0], atol=1e-5)
+    np.testing.assert_allclose(x[1] - mesh.vertices[1], [-0.1, 0, 0], atol=1e-5)

@@ -348,13 +348,15 @@ def contact_velocity_kernel(
     inv_mass: wp.array(dtype=float),
     inv_dt: float,
     slack: float,
+    x_pred: wp.array(dtype=wp.vec3),
     num_threads: int,
     v: wp.array(dtype=wp.vec3),
 ):
-    """After the solve: a vertex within ``slack`` of its plane leaves the step with
-    its normal velocity relative to the surface, ``n . (x - ref) / dt``, no longer approaching:
-    ``-mu_N`` times it (the solve already stopped its position; its friction acted inside the
-    solve, so the stage's impulse, which sees no approach, adds none)."""
+    """After the solve: a vertex within ``slack`` of its plane that still approaches it
+    (``n . (x - ref) / dt < 0``, relative to the surface) leaves the step with ``-mu_N`` times
+    the normal speed it arrived with (from its predicted path ``x_pred``): the solve already
+    stopped its position; its friction acted inside the solve, so the stage's impulse, which
+    sees no approach, adds none."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
@@ -368,7 +370,10 @@ def contact_velocity_kernel(
         if wp.dot(n, xi) - rec.offset[e] < slack:  # touching, as the stage's impulse counts it
             vn = wp.dot(n, xi - rec.ref[e]) * inv_dt
             if vn < 0.0:
-                wp.atomic_add(v, i, (-(1.0 + rec.restitution[e]) * vn) * n)
+                # restitution of the normal speed it arrived with (the predicted path relative
+                # to the surface), not of the step's average
+                vin = wp.min(wp.dot(n, x_pred[i] - rec.ref[e]) * inv_dt, 0.0)
+                wp.atomic_add(v, i, (-rec.restitution[e] * vin - vn) * n)
 
 
 class ContactCoupling:
@@ -402,6 +407,7 @@ class ContactCoupling:
         self.device = model.device
         self.vblock = wp.zeros(model.num_vertices, dtype=wp.mat33, device=self.device)
         self.nblock = wp.zeros(model.num_vertices, dtype=wp.mat33, device=self.device)
+        self.x_pred = wp.zeros(model.num_vertices, dtype=wp.vec3, device=self.device)
         self.active = wp.zeros(1, dtype=int, device=self.device)
         self.threads = max(1, -(-stage.capacity // BATCH))
         self.sources = max(1, len(stage.obstacles))
@@ -417,9 +423,11 @@ class ContactCoupling:
                 self.threads)
 
     def detect(self, x_start, x_pred, dt: float, time) -> None:
-        """The record for this step (`CollisionStage.detect`), and the active count cleared."""
+        """The record for this step (`CollisionStage.detect`), the active count cleared, the
+        prediction kept (restitution reads the speed a vertex arrives with from it)."""
         self.stage.detect(x_start, x_pred, dt, time)
         self.active.zero_()
+        wp.copy(self.x_pred, x_pred)
 
     # ------------------------------------------------------------------ Newton
     def add_newton(self, x, b, diag, dt: float) -> None:
@@ -456,7 +464,7 @@ class ContactCoupling:
         wp.launch(contact_velocity_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, 1.0 / dt,
                    self.stage.contact.slack if self.stage.contact is not None else 0.0,
-                   self.threads, v],
+                   self.x_pred, self.threads, v],
                   device=self.device)
 
     # ------------------------------------------------------------------ projective dynamics

@@ -293,15 +293,17 @@ class PositionBased(Solver):
         self.relaxation = a
 
         # ---- constraints on the host, once
-        pairs = [model.spring_pairs.reshape(-1, 2)]
-        rest = [model.spring_rest]
+        # a spring of stiffness 0 exerts nothing: it is no constraint (not a rigid link)
+        live = np.asarray(model.spring_stiffness) > 0
+        pairs = [model.spring_pairs.reshape(-1, 2)[live]]
+        rest = [np.asarray(model.spring_rest)[live]]
         if self.compliance is None:
-            comp = [np.zeros(model.num_springs)]
+            comp = [np.zeros(int(live.sum()))]
         elif self.compliance == "springs":
-            k = model.spring_stiffness
-            comp = [np.where(k > 0, 1.0 / np.maximum(k, 1e-30), 0.0)]
+            k = np.asarray(model.spring_stiffness)[live]
+            comp = [1.0 / k]
         else:
-            comp = [np.full(model.num_springs, self.compliance)]
+            comp = [np.full(int(live.sum()), self.compliance)]
         if self.bending_compliance is not None and len(model.mesh.bend_quads):
             bp = model.mesh.bend_quads[:, 2:4]
             x0 = model.mesh.vertices
