@@ -124,3 +124,35 @@ def test_model_initial_positions_are_checked():
     x[4, 1] = np.nan
     with pytest.raises(ValueError, match="vertex 4"):
         ClothModel(mesh, positions=x)
+
+
+def test_stack_of_sheets_stays_apart():
+    from warp_cloth.collision.check import SelfIntersectionChecker
+    from warp_cloth.contact_scenes import stack
+
+    scene = stack(res=8, frames=45)
+    m = scene.model
+    chk = SelfIntersectionChecker(m.mesh.triangles, m.mesh.edges, m.num_vertices)
+    crossings = []
+    scene.run(None, quiet=True, energy=False, on_frame=lambda f, st: crossings.append(chk(st.x)))
+    assert max(crossings) == 0
+    assert scene.collision.stats["self_fallback_all_total"] == 0
+    x = scene.state.positions()
+    assert x[:, 1].max() < 2 * 0.2 + 0.1  # the three sheets came down onto the sphere
+
+
+def test_twist_turns_its_edges_in_opposite_directions():
+    from warp_cloth.contact_scenes import twist
+
+    scene = twist(res=6, frames=31, self_collision=False, solver="pd")
+    scene.run(None, quiet=True, energy=False)
+    x, x0 = scene.state.positions(), scene.model.mesh.vertices
+    left = np.isclose(x0[:, 0], x0[:, 0].min())
+    right = np.isclose(x0[:, 0], x0[:, 0].max())
+    t = scene.state.t
+    ang = lambda p, q: np.arctan2(p[:, 2], p[:, 1] - 1.0) - np.arctan2(q[:, 2], q[:, 1] - 1.0)
+    a_l = np.angle(np.exp(1j * ang(x[left], x0[left])))
+    a_r = np.angle(np.exp(1j * ang(x[right], x0[right])))
+    far = np.abs(x0[left, 2]) > 0.1  # points off the axis turn by the angle
+    assert np.allclose(a_l[far], np.pi / 3 * t, atol=0.02)
+    assert np.allclose(a_r[far[: right.sum()]], -np.pi / 3 * t, atol=0.02)

@@ -19,11 +19,12 @@ import sys
 
 from .util import quiet_warp
 
-SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh", "thin", "fold"]
+SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh", "thin", "fold", "twist",
+               "stack"]
 SOLVER_NAMES = ["explicit", "implicit", "pbd", "pd"]
-CONTACT_SCENES = ["drape", "table", "spin", "mesh", "thin", "fold"]
+CONTACT_SCENES = ["drape", "table", "spin", "mesh", "thin", "fold", "stack"]
 #: scenes whose default solver is not explicit Euler (self-collision at its many substeps is slow)
-SCENE_SOLVERS = {"fold": "implicit"}
+SCENE_SOLVERS = {"fold": "implicit", "twist": "implicit", "stack": "implicit"}
 CONTACT_OPTIONS = ["friction", "restitution", "thickness"]
 BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability", "ccd"]
 

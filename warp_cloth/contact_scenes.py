@@ -30,7 +30,8 @@ from .mesh import TriMesh
 from .model import DEFAULT_DENSITY, DEFAULT_STRETCH_STIFFNESS, ClothModel
 from .scenes import _finish, _grid_shape
 
-__all__ = ["drape", "table", "spin", "mesh", "thin", "fold", "thin_parts_mesh", "sheet_model",
+__all__ = ["drape", "table", "spin", "mesh", "thin", "fold", "twist", "stack", "thin_parts_mesh",
+           "sheet_model",
            "asset_path"]
 
 #: the meshes shipped with the package (``warp_cloth/assets``; ``assets/make_assets.py`` makes them)
@@ -252,5 +253,89 @@ def fold(*, solver: str = "implicit", solver_options: dict | None = None, fps: f
                            restitution=restitution, self_collision=self_collision)
     scene = _finish(model, solver, solver_options, corrections, fps, frames, substeps, (),
                     strain_bound, "fold", collision=stage)
+    scene.contact, scene.collision = stage.contact, stage
+    return scene
+
+
+def twist(*, solver: str = "implicit", solver_options: dict | None = None, fps: float = 60.0,
+          frames: int = 600, substeps=None, corrections=(), obstacles=(),
+          strain_bound: float = 10.0, thickness: float = DEFAULT_THICKNESS, res: int = 49,
+          size: float = 1.0, rate: float = math.pi / 3.0, height: float = 1.0,
+          self_collision: bool = True, **model_args):
+    """A square sheet (``res`` x ``res`` cells: 50 x 50 vertices by default) held by two opposite
+    edges, which turn about the axis between them in opposite directions at ``rate`` rad/s (as
+    Newton's cloth_twist: pi/3 rad/s for 10 s): the middle winds up into a rope that must not
+    pass through itself."""
+    from .model import PinPath
+
+    n = int(res)
+    mesh = TriMesh.grid(n, n, size=size, plane="xz", origin=(-0.5 * size, height, -0.5 * size),
+                        name="cloth")
+    x = mesh.vertices
+    left = np.flatnonzero(np.isclose(x[:, 0], x[:, 0].min()))
+    right = np.flatnonzero(np.isclose(x[:, 0], x[:, 0].max()))
+    pins = np.concatenate([left, right])
+    p0 = x[pins]
+    sign = np.concatenate([np.ones(len(left)), -np.ones(len(right))])
+    duration = frames / float(fps)
+    times = np.linspace(0.0, duration, max(2, int(math.ceil(duration * 60.0)) + 1))
+
+    def at(t):  # rotate each edge about the x axis through the sheet's centre line
+        a = sign * rate * t
+        y, z = p0[:, 1] - height, p0[:, 2]
+        return np.stack([p0[:, 0], height + y * np.cos(a) - z * np.sin(a),
+                         y * np.sin(a) + z * np.cos(a)], axis=1)
+
+    model_args.setdefault("bending", "quadratic")
+    model_args.setdefault("bend_stiffness", 1e-4)
+    model = ClothModel(mesh, density=model_args.pop("density", DEFAULT_DENSITY),
+                       stretch_stiffness=model_args.pop("stiffness", DEFAULT_STRETCH_STIFFNESS),
+                       pins=pins, pin_path=PinPath.from_function(at, times),
+                       damping=model_args.pop("damping", 0.1), **model_args)
+    stage = CollisionStage(model, list(obstacles), thickness=thickness,
+                           self_collision=self_collision) if (obstacles or self_collision) \
+        else None
+    scene = _finish(model, solver, solver_options, corrections, fps, frames, substeps, (),
+                    strain_bound, "twist", collision=stage)
+    scene.collision = stage
+    scene.contact = stage.contact if stage is not None else None
+    return scene
+
+
+def stack(*, solver: str = "implicit", solver_options: dict | None = None, fps: float = 60.0,
+          frames: int = 150, substeps=None, corrections=(), obstacles=(),
+          strain_bound: float = 10.0, thickness: float = DEFAULT_THICKNESS, sheets: int = 3,
+          res: int = 16, size: float = 0.8, radius: float = 0.2, gap: float = 0.08,
+          friction: float = 0.4, self_collision: bool = True, **model_args):
+    """``sheets`` sheets (``res`` x ``res`` cells, ``size`` m) one above the other, each turned
+    a little, dropped onto a sphere of ``radius`` m on the ground: they drape over it and over
+    each other. Self-collision keeps them apart (one model: the sheets are one mesh)."""
+    if int(sheets) < 1:
+        raise ValueError(f"stack: sheets must be >= 1, got {sheets}")
+    verts, tris = [], []
+    base = 0
+    for k in range(int(sheets)):
+        g = TriMesh.grid(res, res, size=size, plane="xz",
+                         origin=(-0.5 * size, 0.0, -0.5 * size))
+        a = 0.35 * k
+        c, s_ = math.cos(a), math.sin(a)
+        v = g.vertices.copy()
+        v[:, 0], v[:, 2] = c * g.vertices[:, 0] - s_ * g.vertices[:, 2], \
+            s_ * g.vertices[:, 0] + c * g.vertices[:, 2]
+        v[:, 1] = 2.0 * radius + 0.05 + gap * (k + 1)
+        verts.append(v)
+        tris.append(g.triangles + base)
+        base += len(v)
+    mesh = TriMesh(np.concatenate(verts), np.concatenate(tris), name="cloth")
+    model_args.setdefault("bending", "quadratic")
+    model_args.setdefault("bend_stiffness", 1e-4)
+    model = ClothModel(mesh, density=model_args.pop("density", DEFAULT_DENSITY),
+                       stretch_stiffness=model_args.pop("stiffness", DEFAULT_STRETCH_STIFFNESS),
+                       damping=model_args.pop("damping", 0.1), **model_args)
+    obs = [Sphere(radius, (0.0, radius, 0.0)), Plane(), *obstacles]
+    stage = CollisionStage(model, obs, thickness=thickness, friction=friction,
+                           self_collision=self_collision)
+    scene = _finish(model, solver, solver_options, corrections, fps, frames, substeps, (),
+                    strain_bound, "stack", collision=stage)
     scene.contact, scene.collision = stage.contact, stage
     return scene

@@ -98,6 +98,8 @@ LAZY_SCENES = {
     "mesh": "warp_cloth.contact_scenes",
     "thin": "warp_cloth.contact_scenes",
     "fold": "warp_cloth.contact_scenes",
+    "twist": "warp_cloth.contact_scenes",
+    "stack": "warp_cloth.contact_scenes",
 }
 
 
