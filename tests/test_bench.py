@@ -114,3 +114,25 @@ def test_contact_bench_equal_work_rows(capsys):
     assert by[contact.FLOOR]["ms_per_frame_without"] == by["sphere"]["ms_per_frame_without"]
     assert by[contact.FLOOR]["target"] is None and by["sphere"]["target"] == 0.20
     assert by[contact.FLOOR]["floor_max_deviation"] < 1e-4
+
+
+def test_selfcollision_bench_reports_both_variants(capsys):
+    import json
+
+    from warp_cloth.bench import selfcollision
+
+    assert selfcollision.main(["--solver", "pd", "--res", "8", "--warmup", "60", "--rounds", "1",
+                               "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert len(rows) == 1 and rows[0]["solver"] == "pd"
+    assert rows[0]["ms_step_with"] > 0 and rows[0]["ms_step_without"] > 0
+    assert rows[0]["contacts_per_step"] > 0  # it timed the folded, touching state
+
+
+def test_ccd_bench_totals_line(capsys):
+    from warp_cloth.bench import ccd
+
+    here = __import__("os").path.dirname(__file__)
+    assert ccd.main(["--queries", here + "/data/ccd-queries", "--repeats", "1"]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last.startswith("total: queries=179 ") and "false_negatives=0" in last
