@@ -156,3 +156,11 @@ def test_twist_turns_its_edges_in_opposite_directions():
     far = np.abs(x0[left, 2]) > 0.1  # points off the axis turn by the angle
     assert np.allclose(a_l[far], np.pi / 3 * t, atol=0.02)
     assert np.allclose(a_r[far[: right.sum()]], -np.pi / 3 * t, atol=0.02)
+
+
+def test_checker_ignores_segments_in_a_triangles_plane():
+    """The fold's start: the hinge edges lie in the lifted half's plane, outside its triangles
+    (a coplanar segment touches at most; float rounding once made that a crossing)."""
+    scene = fold(res=12, frames=1)
+    m = scene.model
+    assert self_crossings(m.initial_positions, m.mesh.triangles, m.mesh.edges) == 0

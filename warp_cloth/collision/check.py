@@ -65,7 +65,9 @@ def segment_crosses_triangle(p: wp.vec3d, q: wp.vec3d, a: wp.vec3d, b: wp.vec3d,
     e2 = c - a
     h = wp.cross(d, e2)
     det = wp.dot(e1, h)
-    if wp.abs(det) < wp.float64(1.0e-30):
+    # a segment (nearly) in the triangle's plane touches it at most: not a crossing. Relative
+    # threshold: det is a triple product, rounded to about 1e-16 of |d| |e1| |e2|
+    if wp.abs(det) <= wp.float64(1.0e-9) * wp.length(d) * wp.length(e1) * wp.length(e2):
         return False
     f = wp.float64(1.0) / det
     s = p - a
