@@ -44,8 +44,7 @@ import numpy as np
 import warp as wp
 
 from .broadphase import ClothBroadPhase
-from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, point_triangle_closest,
-                       segment_segment_closest)
+from .geometry import CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, vt_impact
 from .record import KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, record_append
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -109,16 +108,6 @@ def feature_world_kernel(local: wp.array(dtype=wp.vec3), pose_of: wp.array(dtype
     p1[i] = wp.transform_point(poses[5 * k + 1], local[i])
 
 
-@wp.func
-def d3(v: wp.vec3):
-    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
-
-
-@wp.func
-def f3(v: wp.vec3d):
-    return wp.vec3(float(v[0]), float(v[1]), float(v[2]))
-
-
 @wp.kernel
 def vertex_triangle_kernel(
     bvh: wp.uint64,
@@ -152,25 +141,12 @@ def vertex_triangle_kernel(
                                      CCD_ITERATIONS)
         if s == CCD_MISS:
             continue
-        # the configuration at the time of impact
-        ft = float(toi)
-        pa = x0[ia] + ft * (x1[ia] - x0[ia])
-        pb = x0[ib] + ft * (x1[ib] - x0[ib])
-        pc = x0[ic] + ft * (x1[ic] - x0[ic])
-        pv = a0 + ft * (a1 - a0)
-        cq, bw = point_triangle_closest(d3(pv), d3(pa), d3(pb), d3(pc))
-        d = f3(cq) - pv
-        n = wp.vec3(0.0)
-        if wp.length(d) > 1.0e-9:
-            n = wp.normalize(d)
-        else:
-            # touching: the face normal, on the side the triangle was at the start
-            n = wp.normalize(wp.cross(pb - pa, pc - pa))
-            w0 = wp.vec3(float(bw[0]), float(bw[1]), float(bw[2]))
-            q0 = w0[0] * x0[ia] + w0[1] * x0[ib] + w0[2] * x0[ic]
-            if wp.dot(q0 - a0, n) < 0.0:
-                n = -n
-        w = wp.vec4(float(bw[0]), float(bw[1]), float(bw[2]), 0.0)
+        # at the time of impact; the triangle moves away from the vertex (-n)
+        n, bw, ok = vt_impact(a0, a1, x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], toi)
+        if not ok:
+            continue
+        n = -n
+        w = wp.vec4(bw[0], bw[1], bw[2], 0.0)
         record_append(rec, KIND_VERTEX_TRIANGLE, wp.vec4i(ia, ib, ic, -1), w, n,
                       wp.dot(n, a1) + sep, a1, mu_t[source[i]], 0.0, source[i])
 
@@ -211,28 +187,11 @@ def edge_edge_kernel(
                                d3(x1[ic]), d3(x1[id]), wp.float64(gap), CCD_ITERATIONS)
         if s == CCD_MISS:
             continue
-        ft = float(toi)
-        pa = a0 + ft * (a1 - a0)
-        pb = b0 + ft * (b1 - b0)
-        pc = x0[ic] + ft * (x1[ic] - x0[ic])
-        pd = x0[id] + ft * (x1[id] - x0[id])
-        so, tc, co, cc = segment_segment_closest(d3(pa), d3(pb), d3(pc), d3(pd))
-        d = f3(cc) - f3(co)
-        n = wp.vec3(0.0)
-        if wp.length(d) > 1.0e-9:
-            n = wp.normalize(d)
-        else:
-            n = wp.cross(pb - pa, pd - pc)
-            if wp.length(n) < 1.0e-12:
-                n = wp.vec3(0.0, 1.0, 0.0)
-            n = wp.normalize(n)
-            s0 = float(so)
-            t0 = float(tc)
-            side = (x0[ic] + t0 * (x0[id] - x0[ic])) - (a0 + s0 * (b0 - a0))
-            if wp.dot(side, n) < 0.0:
-                n = -n
-        fs = float(so)
-        ft2 = float(tc)
+        # at the time of impact; the cloth edge moves away from the obstacle edge (-n)
+        n, fs, ft2, ok = ee_impact(a0, a1, b0, b1, x0[ic], x1[ic], x0[id], x1[id], toi)
+        if not ok:
+            continue
+        n = -n
         o1 = a1 + fs * (b1 - a1)
         w = wp.vec4(1.0 - ft2, ft2, 0.0, 0.0)
         record_append(rec, KIND_EDGE_EDGE, wp.vec4i(ic, id, -1, -1), w, n, wp.dot(n, o1) + sep,

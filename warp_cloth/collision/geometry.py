@@ -37,7 +37,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = ["closest_point_triangle", "point_triangle_closest", "segment_segment_closest",
-           "ccd_vertex_triangle", "ccd_edge_edge", "CCD_MISS", "CCD_HIT", "CCD_CAPPED"]
+           "ccd_vertex_triangle", "ccd_edge_edge", "vt_impact", "ee_impact", "CCD_MISS", "CCD_HIT", "CCD_CAPPED"]
 
 CCD_MISS = wp.constant(0)
 CCD_HIT = wp.constant(1)
@@ -236,6 +236,69 @@ def ccd_edge_edge(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d,
             return CCD_MISS, one
         t = t + step
     return CCD_CAPPED, t
+
+
+@wp.func
+def d3(v: wp.vec3):
+    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
+
+
+@wp.func
+def f3(v: wp.vec3d):
+    return wp.vec3(float(v[0]), float(v[1]), float(v[2]))
+
+
+@wp.func
+def vt_impact(p0: wp.vec3, p1: wp.vec3, a0: wp.vec3, a1: wp.vec3, b0: wp.vec3, b1: wp.vec3,
+              c0: wp.vec3, c1: wp.vec3, toi: wp.float64):
+    """A vertex-triangle contact at the time of impact ``toi`` of the linear paths ``*0 -> *1``:
+    (unit normal from the triangle's closest point to the vertex, barycentric weights of that
+    point, valid). When they touch there, the face normal, turned to the side the vertex was
+    on at the start; not valid for a degenerate triangle then."""
+    ft = float(toi)
+    pa = a0 + ft * (a1 - a0)
+    pb = b0 + ft * (b1 - b0)
+    pc = c0 + ft * (c1 - c0)
+    pv = p0 + ft * (p1 - p0)
+    cq, bw = point_triangle_closest(d3(pv), d3(pa), d3(pb), d3(pc))
+    w = wp.vec3(float(bw[0]), float(bw[1]), float(bw[2]))
+    d = pv - f3(cq)
+    if wp.length(d) > 1.0e-9:
+        return wp.normalize(d), w, True
+    n = wp.cross(pb - pa, pc - pa)
+    if wp.length(n) < 1.0e-12:
+        return wp.vec3(0.0), w, False
+    n = wp.normalize(n)
+    if wp.dot(p0 - (w[0] * a0 + w[1] * b0 + w[2] * c0), n) < 0.0:
+        n = -n
+    return n, w, True
+
+
+@wp.func
+def ee_impact(a0: wp.vec3, a1: wp.vec3, b0: wp.vec3, b1: wp.vec3, c0: wp.vec3, c1: wp.vec3,
+              d0: wp.vec3, d1: wp.vec3, toi: wp.float64):
+    """An edge-edge contact of edges ``ab`` and ``cd`` at the time of impact ``toi``: (unit
+    normal from ``cd``'s closest point to ``ab``'s, parameter on ``ab``, parameter on ``cd``,
+    valid). When they touch there, the normal of both edges, turned to the side ``ab`` was on
+    at the start; not valid for parallel edges then."""
+    ft = float(toi)
+    pa = a0 + ft * (a1 - a0)
+    pb = b0 + ft * (b1 - b0)
+    pc = c0 + ft * (c1 - c0)
+    pd = d0 + ft * (d1 - d0)
+    s, t, c1p, c2p = segment_segment_closest(d3(pa), d3(pb), d3(pc), d3(pd))
+    fs = float(s)
+    fu = float(t)
+    d = f3(c1p) - f3(c2p)
+    if wp.length(d) > 1.0e-9:
+        return wp.normalize(d), fs, fu, True
+    n = wp.cross(pb - pa, pd - pc)
+    if wp.length(n) < 1.0e-12:
+        return wp.vec3(0.0), fs, fu, False
+    n = wp.normalize(n)
+    if wp.dot((a0 + fs * (b0 - a0)) - (c0 + fu * (d0 - c0)), n) < 0.0:
+        n = -n
+    return n, fs, fu, True
 
 
 @wp.kernel

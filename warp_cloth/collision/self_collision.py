@@ -33,9 +33,8 @@ from __future__ import annotations
 import warp as wp
 
 from .broadphase import ClothBroadPhase
-from .features import d3, f3, jacobi_apply_kernel, jacobi_project_kernel
-from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, point_triangle_closest,
-                       segment_segment_closest)
+from .features import jacobi_apply_kernel, jacobi_project_kernel
+from .geometry import CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, vt_impact
 from .record import KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, make_record, record_append
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -73,25 +72,10 @@ def self_vt_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dty
                                      CCD_ITERATIONS)
         if s == CCD_MISS:
             continue
-        ft = float(toi)
-        pa = x0[ia] + ft * (x1[ia] - x0[ia])
-        pb = x0[ib] + ft * (x1[ib] - x0[ib])
-        pc = x0[ic] + ft * (x1[ic] - x0[ic])
-        pv = a0 + ft * (a1 - a0)
-        cq, bw = point_triangle_closest(d3(pv), d3(pa), d3(pb), d3(pc))
-        d = pv - f3(cq)  # from the triangle to the vertex
-        n = wp.vec3(0.0)
-        if wp.length(d) > 1.0e-9:
-            n = wp.normalize(d)
-        else:
-            n = wp.cross(pb - pa, pc - pa)
-            if wp.length(n) < 1.0e-12:
-                continue
-            n = wp.normalize(n)
-            w0 = wp.vec3(float(bw[0]), float(bw[1]), float(bw[2]))
-            if wp.dot(a0 - (w0[0] * x0[ia] + w0[1] * x0[ib] + w0[2] * x0[ic]), n) < 0.0:
-                n = -n
-        w = wp.vec4(1.0, -float(bw[0]), -float(bw[1]), -float(bw[2]))
+        n, bw, ok = vt_impact(a0, a1, x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], toi)
+        if not ok:
+            continue
+        w = wp.vec4(1.0, -bw[0], -bw[1], -bw[2])
         record_append(rec, KIND_VERTEX_TRIANGLE, wp.vec4i(v, ia, ib, ic), w, n, sep,
                       wp.vec3(0.0), 0.0, 0.0, -1)
 
@@ -124,28 +108,10 @@ def self_ee_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dty
                                d3(x1[ib]), d3(x1[ic]), d3(x1[id]), wp.float64(gap), CCD_ITERATIONS)
         if s == CCD_MISS:
             continue
-        ft = float(toi)
-        pa = x0[ia] + ft * (x1[ia] - x0[ia])
-        pb = x0[ib] + ft * (x1[ib] - x0[ib])
-        pc = x0[ic] + ft * (x1[ic] - x0[ic])
-        pd = x0[id] + ft * (x1[id] - x0[id])
-        sa, tc, c1, c2 = segment_segment_closest(d3(pa), d3(pb), d3(pc), d3(pd))
-        d = f3(c1) - f3(c2)  # from the second edge to the first
-        n = wp.vec3(0.0)
-        if wp.length(d) > 1.0e-9:
-            n = wp.normalize(d)
-        else:
-            n = wp.cross(pb - pa, pd - pc)
-            if wp.length(n) < 1.0e-12:
-                continue
-            n = wp.normalize(n)
-            fs = float(sa)
-            fc = float(tc)
-            side = (x0[ia] + fs * (x0[ib] - x0[ia])) - (x0[ic] + fc * (x0[id] - x0[ic]))
-            if wp.dot(side, n) < 0.0:
-                n = -n
-        s1 = float(sa)
-        t1 = float(tc)
+        n, s1, t1, ok = ee_impact(x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], x0[id],
+                                  x1[id], toi)
+        if not ok:
+            continue
         w = wp.vec4(1.0 - s1, s1, -(1.0 - t1), -t1)
         record_append(rec, KIND_EDGE_EDGE, wp.vec4i(ia, ib, ic, id), w, n, sep, wp.vec3(0.0),
                       0.0, 0.0, -1)

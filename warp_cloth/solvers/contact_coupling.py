@@ -100,7 +100,8 @@ def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
                    inv_mass: wp.array(dtype=float), kappa_dt2: float, eps: float,
                    lam: wp.array(dtype=float), num_sources: int):
     """Entry ``e`` at ``x``: (active, force on the weighted point ``sum w_j x_j``, its 3x3
-    Hessian block, energy). Normal: the penalty where ``g < 0``; tangential (vertex-obstacle
+    Hessian block, the normal penalty's part of that block, energy). Normal: the penalty where
+    ``g < 0``; tangential (vertex-obstacle
     entries with ``mu_T > 0`` whose vertex presses on the obstacle): smoothed Coulomb friction
     with the normal force ``lam`` fixed for the step (`friction_guess_kernel`; module doc)."""
     g, im = entry_gap(rec, e, x, inv_mass)
@@ -109,7 +110,7 @@ def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
     H = wp.mat33(0.0)
     E = float(0.0)
     if im <= 0.0:
-        return on, f, H, E
+        return on, f, H, H, E
     n = rec.normal[e]
     nn = wp.outer(n, n)
     if g < 0.0:
@@ -118,6 +119,7 @@ def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
         f = (-k * g) * n
         H = k * nn
         E = 0.5 * k * g * g
+    Hn = H
     mu = rec.friction[e]
     if mu > 0.0 and rec.kind[e] == KIND_VERTEX_OBSTACLE:
         i = rec.vertex[e][0]
@@ -146,7 +148,7 @@ def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
                 E = E + mu * lam_i * y
                 H = H + c * (T - uu)
             f = f - c * u
-    return on, f, H, E
+    return on, f, H, Hn, E
 
 
 @wp.kernel
@@ -193,14 +195,10 @@ def newton_contact_kernel(
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
-        on, f, H, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources)
+        on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources)
         if on:
             vid = rec.vertex[e]
             w = rec.weight[e]
-            g, im = entry_gap(rec, e, x, inv_mass)
-            Hn = wp.mat33(0.0)
-            if g < 0.0:
-                Hn = (kappa_dt2 / im) * wp.outer(rec.normal[e], rec.normal[e])
             for j in range(4):
                 v = vid[j]
                 if v >= 0 and inv_mass[v] > 0.0:
@@ -292,7 +290,7 @@ def contact_energy_kernel(
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
-        on, f, H, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources)
+        on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources)
         if on:
             wp.atomic_add(out, slot, wp.float64(E))
 
@@ -318,7 +316,7 @@ def pd_contact_kernel(
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
-        on, f, H, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources)
+        on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources)
         if on:
             vid = rec.vertex[e]
             w = rec.weight[e]

@@ -390,13 +390,6 @@ def ls_select_kernel(energy: wp.array(dtype=wp.float64), steps: wp.vec4, armijo:
 
 
 @wp.kernel
-def axpy_copy_kernel(src: wp.array(dtype=wp.vec3), dx: wp.array(dtype=wp.vec3), step: float,
-                     dst: wp.array(dtype=wp.vec3)):
-    i = wp.tid()
-    dst[i] = src[i] + step * dx[i]
-
-
-@wp.kernel
 def spring_energy64_kernel(x: wp.array(dtype=wp.vec3), springs: wp.array2d(dtype=wp.int32),
                            rest: wp.array(dtype=float), stiffness: wp.array(dtype=float),
                            out: wp.array(dtype=wp.float64)):
@@ -621,7 +614,6 @@ class ImplicitEuler(Solver):
         self.residuals = wp.zeros(self.newton_iterations + 1, dtype=wp.float32, device=d)
         self.dx_max = wp.zeros(self.newton_iterations + 1, dtype=wp.float32, device=d)
         if self.trace:
-            self._x_try = wp.zeros(n, dtype=wp.vec3, device=d)
             self._obj = wp.zeros(1, dtype=wp.float64, device=d)
             self._obj32 = wp.zeros(1, dtype=wp.float32, device=d)
         self._one = wp.ones(1, dtype=float, device=d)
@@ -701,7 +693,6 @@ class ImplicitEuler(Solver):
         """F(x) for the current step (after `step` began it): host read, for tests and study."""
         m, d = self.model, self.device
         if not hasattr(self, "_obj"):
-            self._x_try = wp.zeros(m.num_vertices, dtype=wp.vec3, device=d)
             self._obj = wp.zeros(1, dtype=wp.float64, device=d)
             self._obj32 = wp.zeros(1, dtype=wp.float32, device=d)
         self._obj.zero_()
