@@ -48,7 +48,7 @@ def test_fold_never_passes_through_itself(solver_name):
     assert max(crossings) == 0, f"{max(crossings)} crossing pairs in a frame"
     st = scene.collision.stats
     assert st["self_overflow_total"] == 0 and st["self_fallback_all_total"] == 0
-    assert st["self_fallback_vertices_total"] == 0  # the response resolved every contact
+    assert st["self_zones_total"] == 0  # the rounds of projection resolved every contact
     assert st["self_contacts_total"] > 0
     # it did fold: the lifted half came down onto the other (within a few thicknesses)
     x = scene.state.positions()
@@ -164,3 +164,184 @@ def test_checker_ignores_segments_in_a_triangles_plane():
     scene = fold(res=12, frames=1)
     m = scene.model
     assert self_crossings(m.initial_positions, m.mesh.triangles, m.mesh.edges) == 0
+
+
+def _brute_candidates(mesh, x0, x1, gap, inv_mass):
+    """Every non-adjacent (vertex, triangle) and (edge, edge) pair whose swept boxes, each
+    inflated by ``gap`` (so pairs within ``2 gap`` count), overlap: the set a conservative broad phase must find (float32 boxes,
+    computed the kernels' way)."""
+    x0 = np.asarray(x0, np.float32)
+    x1 = np.asarray(x1, np.float32)
+    g = np.float32(gap)
+    lo_v, hi_v = np.minimum(x0, x1) - g, np.maximum(x0, x1) + g
+    tris, edges = mesh.triangles, mesh.edges
+    lo_t = lo_v[tris].min(axis=1)
+    hi_t = hi_v[tris].max(axis=1)
+    lo_e = lo_v[edges].min(axis=1)
+    hi_e = hi_v[edges].max(axis=1)
+    free = inv_mass > 0
+
+    def overlap(alo, ahi, blo, bhi):
+        return np.all((alo[:, None] <= bhi[None]) & (blo[None] <= ahi[:, None]), axis=2)
+
+    vt = overlap(lo_v, hi_v, lo_t, hi_t)
+    vt &= ~np.any(tris[None, :, :] == np.arange(len(x0))[:, None, None], axis=2)
+    vt &= free[:, None] | free[tris].any(axis=1)[None]
+    ee = overlap(lo_e, hi_e, lo_e, hi_e)
+    ee &= np.triu(np.ones_like(ee), 1).astype(bool)
+    share = (edges[:, None, :, None] == edges[None, :, None, :]).any(axis=(2, 3))
+    ee &= ~share & (free[edges].any(axis=1)[:, None] | free[edges].any(axis=1)[None])
+    return ({(int(a), int(b)) for a, b in zip(*np.nonzero(vt))},
+            {(int(a), int(b)) for a, b in zip(*np.nonzero(ee))})
+
+
+@pytest.mark.parametrize("method", ["grid", "bvh"])
+@pytest.mark.parametrize("where", ["random", "crumpled", "far", "negative"])
+def test_broad_phase_finds_every_overlapping_pair(method, where):
+    """Both broad phases against brute force: the same candidate set, exactly (conservative and
+    nothing extra after the box test), on a random triangle soup and a crumpled sheet with
+    large motions, near the origin, far from it and at negative coordinates."""
+    import warp as wp
+
+    from warp_cloth.collision.self_collision import SelfCollision
+    from warp_cloth.mesh import TriMesh
+    from warp_cloth.model import ClothModel
+
+    rng = np.random.default_rng(7)
+    if where == "random":
+        n = 60
+        tris = np.array([rng.choice(n, 3, replace=False) for _ in range(40)])
+        x0 = rng.uniform(-0.3, 0.3, (n, 3))
+        used = np.unique(tris)
+        remap = -np.ones(n, int)
+        remap[used] = np.arange(len(used))
+        tris, x0 = remap[tris], x0[used]
+        mesh = TriMesh(x0, tris)
+    else:
+        mesh = sheet_model(res=7).mesh
+        x0 = mesh.vertices + rng.normal(0, 0.05, mesh.vertices.shape)
+        mesh = TriMesh(x0, mesh.triangles)
+    model = ClothModel(mesh, device="cpu")
+    shift = {"random": 0.0, "crumpled": 0.0, "far": 1.0e3, "negative": -7.3}[where]
+    x0 = mesh.vertices + shift
+    x1 = x0 + rng.normal(0, 0.08, x0.shape)
+    x1[3] += 0.5  # one fast vertex: a long swept box
+    inv_mass = model.inv_mass.numpy()
+    sc = SelfCollision(model, 0.01, broadphase=method)
+    a0 = wp.array(x0, dtype=wp.vec3, device="cpu")
+    a1 = wp.array(x1, dtype=wp.vec3, device="cpu")
+    vt, ee = sc.candidates(a0, a1, 0.01)
+    bvt, bee = _brute_candidates(mesh, a0.numpy(), a1.numpy(), 0.01, inv_mass)
+    assert len(bvt) > 20 and len(bee) > 20
+    assert bvt <= vt and bee <= ee  # nothing missed
+    if method == "grid":  # the grid keeps only boxes that overlap: exactly the brute-force set
+        assert vt == bvt and ee == bee
+
+
+def test_broad_phase_method_is_checked():
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    with pytest.raises(ValueError, match="broad phase method 'octree'"):
+        SelfCollision(sheet_model(res=2), 0.01, broadphase="octree")
+
+
+def _zones_setup(n, entries, x0, x1, inv_mass):
+    import warp as wp
+
+    from warp_cloth.collision.impact_zones import ImpactZones
+    from warp_cloth.collision.record import make_record
+
+    class _M:  # the two fields ImpactZones reads
+        num_vertices = n
+        device = "cpu"
+
+    _M.inv_mass = wp.array(np.asarray(inv_mass, np.float32), dtype=float, device="cpu")
+    rec = make_record(16, "cpu")
+    vid = -np.ones((16, 4), np.int32)
+    for k, e in enumerate(entries):
+        vid[k, :len(e)] = e
+    rec.vertex.assign(vid)
+    rec.count.assign(np.array([len(entries)], np.int32))
+    z = ImpactZones(_M)
+    z.reset()
+    z.merge(rec, 4)
+
+    class _S:
+        x = wp.array(np.asarray(x1, np.float32), dtype=wp.vec3, device="cpu")
+        v = wp.zeros(n, dtype=wp.vec3, device="cpu")
+
+    counters = wp.zeros(2, dtype=int, device="cpu")
+    xs = wp.array(np.asarray(x0, np.float32), dtype=wp.vec3, device="cpu")
+    return z, rec, xs, _S, counters
+
+
+def test_impact_zones_merge_contacts_sharing_vertices_and_move_rigidly():
+    """Entries (0,1), (1,2), (2,3) chain into one zone, (5,6) is another, 4 and 7 are in none.
+    Each zone moves rigidly: its inner distances stay those of the start, its centre of mass
+    moves as its vertices did on average, its angular momentum is kept; other vertices keep
+    their end positions."""
+    rng = np.random.default_rng(3)
+    n = 8
+    x0 = rng.uniform(-1, 1, (n, 3))
+    x1 = x0 + rng.normal(0, 0.05, (n, 3))
+    mass = rng.uniform(0.5, 2.0, n)
+    z, rec, xs, st, counters = _zones_setup(n, [(0, 1), (1, 2), (2, 3), (5, 6)], x0, x1, 1 / mass)
+    label = z.label.numpy()
+    assert len(set(label[[0, 1, 2, 3]])) == 1 and label[5] == label[6] != label[0]
+    assert set(np.flatnonzero(z.member.numpy())) == {0, 1, 2, 3, 5, 6}
+    z.move(rec, xs, st, 0.01, counters, 0)
+    x = st.x.numpy().astype(float)
+    assert list(counters.numpy()) == [2, 6]  # two zones, six vertices moved
+    np.testing.assert_allclose(x[[4, 7]], x1[[4, 7]], atol=1e-6)  # not in a zone: untouched
+    for zone in ([0, 1, 2, 3], [5, 6]):
+        m = mass[zone]
+        d0 = np.linalg.norm(x0[zone][:, None] - x0[zone][None], axis=2)
+        d1 = np.linalg.norm(x[zone][:, None] - x[zone][None], axis=2)
+        np.testing.assert_allclose(d1, d0, atol=2e-6)  # rigid
+        c1 = (m[:, None] * x1[zone]).sum(0) / m.sum()
+        np.testing.assert_allclose((m[:, None] * x[zone]).sum(0) / m.sum(), c1, atol=2e-6)
+        c0 = (m[:, None] * x0[zone]).sum(0) / m.sum()
+        q = x0[zone] - c0
+        L_before = (m[:, None] * np.cross(q, (x1[zone] - x0[zone]) - (c1 - c0))).sum(0)
+        L_after = (m[:, None] * np.cross(q, (x[zone] - x0[zone]) - (c1 - c0))).sum(0)
+        # the rotation is finite: its momentum matches to second order in the small angle
+        np.testing.assert_allclose(L_after, L_before, atol=3e-2 * np.abs(L_before).max())
+    v = st.v.numpy()
+    np.testing.assert_allclose(v[[0, 1, 2, 3, 5, 6]], (x - x0)[[0, 1, 2, 3, 5, 6]] / 0.01,
+                               rtol=1e-4, atol=1e-3)
+
+
+def test_impact_zone_with_pins_follows_their_rigid_motion():
+    """A zone holding pinned vertices turned by a prescribed rotation: its free vertex ends where
+    that rotation takes it (the zone follows the pins), the pins keep their positions."""
+    x0 = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0.3, 0.3, 0.5]])
+    a = 0.02
+    R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    x1 = x0.copy()
+    x1[:3] = x0[:3] @ R.T + [0.01, 0, 0]  # the pins: turned and shifted
+    x1[3] = [0.2, 0.2, -0.4]  # the free vertex: elsewhere
+    z, rec, xs, st, counters = _zones_setup(4, [(3, 0, 1, 2)], x0, x1, [0, 0, 0, 1.0])
+    z.move(rec, xs, st, 0.01, counters, 0)
+    x = st.x.numpy()
+    np.testing.assert_allclose(x[:3], x1[:3], atol=1e-6)
+    np.testing.assert_allclose(x[3], x0[3] @ R.T + [0.01, 0, 0], atol=5e-4)
+
+
+def test_weak_projection_falls_back_on_impact_zones_not_crossings():
+    """With one round of one Jacobi iteration the projection leaves contacts unresolved: the
+    rigid impact zones take them (counted, without the whole-cloth return), and no frame has a
+    crossing."""
+    from warp_cloth.collision.check import SelfIntersectionChecker
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    scene = fold(solver="pd", res=10, frames=50, size=0.6, angle=150.0)
+    m = scene.model
+    sc = scene.collision.self_collision
+    scene.collision.self_collision = SelfCollision(m, sc.thickness, rounds=1, iterations=1)
+    chk = SelfIntersectionChecker(m.mesh.triangles, m.mesh.edges, m.num_vertices)
+    crossings = []
+    scene.run(None, quiet=True, energy=False, on_frame=lambda f, st: crossings.append(chk(st.x)))
+    st = scene.collision.stats
+    assert st["self_zones_total"] > 0 and st["self_zone_vertices_total"] >= 2
+    assert st["self_fallback_all_total"] == 0
+    assert max(crossings) == 0

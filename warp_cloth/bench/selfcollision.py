@@ -5,9 +5,9 @@ each solver's default substeps) runs ``--warmup`` frames with self-collision unt
 lies on the other (the expensive case: every vertex near another layer). Then one frame of
 substeps is timed from that same state with the self-collision pass and with it taken out
 (``stage.self_collision = None``), alternating, ``--rounds`` times, the state restored before each
-frame (outside the timed region). Overhead = with / without - 1, beside the absolute times and the
-contacts found per step. The broad phase is the swept-box BVH (`warp_cloth.collision.broadphase`);
-a hash-grid broad phase is not built yet.
+frame (outside the timed region), once with each broad phase (``--broadphase``: the hash grid
+and the swept-box BVH of `warp_cloth.collision.broadphase`). Overhead = with / without - 1,
+beside the absolute times and the contacts found per step.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=60, help="frames before timing")
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--device", default=None)
+    p.add_argument("--broadphase", nargs="+", default=["grid", "bvh"], choices=["grid", "bvh"])
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     if args.res < 2 or args.warmup < 0 or args.rounds < 1:
@@ -56,12 +57,18 @@ def main(argv=None) -> int:
         for _ in range(args.warmup):
             _frame(solver, state, substeps, dt)
         snap = (wp.clone(state.x), wp.clone(state.v), wp.clone(state.time))
+        from ..collision.self_collision import SelfCollision
+
         sc = stage.self_collision
-        times = {"with": [], "without": []}
+        variants = {"without": None}
+        for bp in args.broadphase:
+            variants[bp] = sc if sc.broad.method == bp else SelfCollision(
+                scene.model, sc.thickness, sc.rounds, sc.iterations, broadphase=bp)
+        times = {k: [] for k in variants}
         contacts = 0
         for r in range(args.rounds):
-            for variant in ("with", "without"):
-                stage.self_collision = sc if variant == "with" else None
+            for variant, obj in variants.items():
+                stage.self_collision = obj
                 wp.copy(state.x, snap[0])
                 wp.copy(state.v, snap[1])
                 wp.copy(state.time, snap[2])
@@ -69,24 +76,25 @@ def main(argv=None) -> int:
                 t0 = time.perf_counter()
                 _frame(solver, state, substeps, dt)
                 times[variant].append(time.perf_counter() - t0)
-                if variant == "with" and r == 0:
-                    contacts = sc.stats["self_contacts"]
+                if obj is not None and r == 0:
+                    contacts = obj.stats["self_contacts"]
         stage.self_collision = sc
-        w = 1e3 * statistics.median(times["with"]) / substeps
         wo = 1e3 * statistics.median(times["without"]) / substeps
-        rows.append(dict(solver=name, substeps=substeps, ms_step_with=w, ms_step_without=wo,
-                         overhead=w / wo - 1.0, contacts_per_step=contacts,
-                         vertices=scene.model.num_vertices))
+        for bp in args.broadphase:
+            w = 1e3 * statistics.median(times[bp]) / substeps
+            rows.append(dict(solver=name, broadphase=bp, substeps=substeps, ms_step_with=w,
+                             ms_step_without=wo, overhead=w / wo - 1.0,
+                             contacts_per_step=contacts, vertices=scene.model.num_vertices))
     if args.json:
         print(json.dumps(rows, indent=1))
         return 0
     print(f"# self-collision cost: fold scene, {args.res}x{args.res} cells, after {args.warmup} "
           f"frames (lying folded), median of {args.rounds} rounds, launches not captured\n")
-    print("| solver | substeps/frame | ms/step without | ms/step with | overhead | contacts in the "
-          "last step's rounds |")
-    print("|---|---|---|---|---|---|")
+    print("| solver | broad phase | substeps/frame | ms/step without | ms/step with | overhead | "
+          "contacts in the last step's rounds |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['solver']} | {r['substeps']} | {r['ms_step_without']:.2f} | "
+        print(f"| {r['solver']} | {r['broadphase']} | {r['substeps']} | {r['ms_step_without']:.2f} | "
               f"{r['ms_step_with']:.2f} | {100 * r['overhead']:+.0f} % | {r['contacts_per_step']} |")
     print(f"\n({time.perf_counter() - t_all:.0f} s)")
     return 0

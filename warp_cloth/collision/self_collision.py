@@ -18,12 +18,15 @@ Per step, on the cloth's path from ``x_start`` to ``x`` (``physics.md`` 2.18-2.2
    of the violated entries, each moving its vertices along ``n`` by their share
    ``w_j / m_j / sum w_k^2 / m_k`` of the violation, averaged per vertex, ``v += dx / dt``;
    then fresh detection on the corrected path, up to ``rounds`` times.
-4. **Fail-safe**: if a path still comes within 5 % of the thickness after the last round (all
-   but touching: a crossing passes through zero distance), the vertices of those entries
-   return to their start positions with zero velocity (rigid, the start of the step being free
-   of crossings); if one still does, the whole cloth returns to its start. Both are counted
-   in ``stats`` (``self_fallback_vertices``, ``self_fallback_all``, per step and summed over
-   the run), never silent.
+4. **Rigid impact zones** (`warp_cloth.collision.impact_zones`): if a path still comes within
+   5 % of the thickness after the last round (all but touching: a crossing passes through zero
+   distance), the vertices of those contacts are merged into zones (contacts sharing a vertex),
+   each zone moves rigidly over the step with its linear and angular momentum (distances inside
+   it as at the start of the step, which was free of crossings), the paths are detected again and
+   new contacts grow the zones, ``zone_passes`` times. If one still comes that close, the whole
+   cloth returns to its start with zero velocity. All counted in ``stats`` (``self_zones``,
+   ``self_zone_vertices``, ``self_fallback_all``, per step and summed over the run), never
+   silent.
 
 No host decision: every round is launched, and each does nothing once nothing is left.
 """
@@ -32,8 +35,9 @@ from __future__ import annotations
 
 import warp as wp
 
-from .broadphase import ClothBroadPhase
+from .broadphase import ClothBroadPhase, boxes_overlap, grid_radius
 from .features import jacobi_apply_kernel, jacobi_project_kernel
+from .impact_zones import ImpactZones
 from .geometry import CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, vt_impact
 from .record import KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, make_record, record_append
 
@@ -42,108 +46,192 @@ wp.set_module_options({"enable_backward": False})  # no gradients here: less to 
 __all__ = ["SelfCollision"]
 
 CCD_ITERATIONS = 64
+#: the counters of `SelfCollision.stats`, per step (and ``*_total``: summed over all steps)
+STAT_KEYS = ("self_contacts", "self_overflow", "self_zones", "self_zone_vertices",
+             "self_fallback_all")
 #: the fail-safe acts on paths that come this close (a fraction of the thickness)
 FAILSAFE_GAP = 0.05
 
 
-@wp.kernel
-def self_vt_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
-                   tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
-                   inv_mass: wp.array(dtype=float), done: wp.array(dtype=int), rec: ContactRecord):
-    """Vertex ``v`` against the triangles its swept box meets (not its own); nothing once
-    ``done[0]``."""
-    v = wp.tid()
-    if done[0] != 0:
+@wp.func
+def vt_pair(v: int, t: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+            tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
+            inv_mass: wp.array(dtype=float), rec: ContactRecord,
+            pairs: wp.array(dtype=wp.vec2i), npairs: wp.array(dtype=int)):
+    """Vertex ``v`` against triangle ``t`` (a broad-phase candidate): skipped when ``v`` is one
+    of its corners or all four are pinned; with a ``pairs`` buffer the pair is only listed
+    (broad-phase tests), else the continuous test appends a contact."""
+    ia = tris[t, 0]
+    ib = tris[t, 1]
+    ic = tris[t, 2]
+    if ia == v or ib == v or ic == v:
+        return
+    if inv_mass[v] + inv_mass[ia] + inv_mass[ib] + inv_mass[ic] == 0.0:
+        return
+    if pairs.shape[0] > 0:
+        k = wp.atomic_add(npairs, 0, 1)
+        if k < pairs.shape[0]:
+            pairs[k] = wp.vec2i(v, t)
         return
     a0 = x0[v]
     a1 = x1[v]
-    q = wp.bvh_query_aabb(bvh, wp.min(a0, a1) - wp.vec3(gap), wp.max(a0, a1) + wp.vec3(gap))
-    t = int(0)
-    while wp.bvh_query_next(q, t):
-        ia = tris[t, 0]
-        ib = tris[t, 1]
-        ic = tris[t, 2]
-        if ia == v or ib == v or ic == v:
-            continue
-        if inv_mass[v] + inv_mass[ia] + inv_mass[ib] + inv_mass[ic] == 0.0:
-            continue
-        s, toi = ccd_vertex_triangle(d3(a0), d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(a1),
-                                     d3(x1[ia]), d3(x1[ib]), d3(x1[ic]), wp.float64(gap),
-                                     CCD_ITERATIONS)
-        if s == CCD_MISS:
-            continue
-        n, bw, ok = vt_impact(a0, a1, x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], toi)
-        if not ok:
-            continue
-        w = wp.vec4(1.0, -bw[0], -bw[1], -bw[2])
-        record_append(rec, KIND_VERTEX_TRIANGLE, wp.vec4i(v, ia, ib, ic), w, n, sep,
-                      wp.vec3(0.0), 0.0, 0.0, -1)
-
-
-@wp.kernel
-def self_ee_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
-                   edges: wp.array2d(dtype=wp.int32), gap: float, sep: float,
-                   inv_mass: wp.array(dtype=float), done: wp.array(dtype=int), rec: ContactRecord):
-    """Edge ``e`` against the edges of higher index its swept box meets (none sharing a
-    vertex); nothing once ``done[0]``."""
-    e = wp.tid()
-    if done[0] != 0:
+    s, toi = ccd_vertex_triangle(d3(a0), d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(a1),
+                                 d3(x1[ia]), d3(x1[ib]), d3(x1[ic]), wp.float64(gap),
+                                 CCD_ITERATIONS)
+    if s == CCD_MISS:
         return
+    n, bw, ok = vt_impact(a0, a1, x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], toi)
+    if not ok:
+        return
+    w = wp.vec4(1.0, -bw[0], -bw[1], -bw[2])
+    record_append(rec, KIND_VERTEX_TRIANGLE, wp.vec4i(v, ia, ib, ic), w, n, sep,
+                  wp.vec3(0.0), 0.0, 0.0, -1)
+
+
+@wp.func
+def ee_pair(e: int, f: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+            edges: wp.array2d(dtype=wp.int32), gap: float, sep: float,
+            inv_mass: wp.array(dtype=float), rec: ContactRecord,
+            pairs: wp.array(dtype=wp.vec2i), npairs: wp.array(dtype=int)):
+    """Edge ``e`` against edge ``f > e`` (a candidate): skipped when they share a vertex or all
+    four are pinned; listed or tested as `vt_pair`."""
+    if f <= e:
+        return
+    ia = edges[e, 0]
+    ib = edges[e, 1]
+    ic = edges[f, 0]
+    id = edges[f, 1]
+    if ic == ia or ic == ib or id == ia or id == ib:
+        return
+    if inv_mass[ia] + inv_mass[ib] + inv_mass[ic] + inv_mass[id] == 0.0:
+        return
+    if pairs.shape[0] > 0:
+        k = wp.atomic_add(npairs, 0, 1)
+        if k < pairs.shape[0]:
+            pairs[k] = wp.vec2i(e, f)
+        return
+    s, toi = ccd_edge_edge(d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(x0[id]), d3(x1[ia]),
+                           d3(x1[ib]), d3(x1[ic]), d3(x1[id]), wp.float64(gap), CCD_ITERATIONS)
+    if s == CCD_MISS:
+        return
+    n, s1, t1, ok = ee_impact(x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], x0[id], x1[id], toi)
+    if not ok:
+        return
+    w = wp.vec4(1.0 - s1, s1, -(1.0 - t1), -t1)
+    record_append(rec, KIND_EDGE_EDGE, wp.vec4i(ia, ib, ic, id), w, n, sep, wp.vec3(0.0),
+                  0.0, 0.0, -1)
+
+
+@wp.func
+def vertex_box(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), v: int, gap: float):
+    return wp.min(x0[v], x1[v]) - wp.vec3(gap), wp.max(x0[v], x1[v]) + wp.vec3(gap)
+
+
+@wp.func
+def edge_box(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+             edges: wp.array2d(dtype=wp.int32), e: int, gap: float):
     ia = edges[e, 0]
     ib = edges[e, 1]
     lo = wp.min(wp.min(x0[ia], x1[ia]), wp.min(x0[ib], x1[ib])) - wp.vec3(gap)
     hi = wp.max(wp.max(x0[ia], x1[ia]), wp.max(x0[ib], x1[ib])) + wp.vec3(gap)
+    return lo, hi
+
+
+@wp.kernel
+def self_vt_bvh_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                       tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
+                       inv_mass: wp.array(dtype=float), done: wp.array(dtype=int),
+                       rec: ContactRecord, pairs: wp.array(dtype=wp.vec2i),
+                       npairs: wp.array(dtype=int)):
+    """Vertex ``v`` against the triangles whose swept box meets its own (BVH); nothing once
+    ``done[0]``."""
+    v = wp.tid()
+    if done[0] != 0:
+        return
+    lo, hi = vertex_box(x0, x1, v, gap)
+    q = wp.bvh_query_aabb(bvh, lo, hi)
+    t = int(0)
+    while wp.bvh_query_next(q, t):
+        vt_pair(v, t, x0, x1, tris, gap, sep, inv_mass, rec, pairs, npairs)
+
+
+@wp.kernel
+def self_vt_grid_kernel(grid: wp.uint64, lowers: wp.array(dtype=wp.vec3),
+                        uppers: wp.array(dtype=wp.vec3), rmax: wp.array(dtype=float),
+                        x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                        tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
+                        inv_mass: wp.array(dtype=float), done: wp.array(dtype=int),
+                        rec: ContactRecord, pairs: wp.array(dtype=wp.vec2i),
+                        npairs: wp.array(dtype=int)):
+    """Vertex ``v`` against the triangles whose swept box meets its own (hash grid of box
+    centres, `warp_cloth.collision.broadphase`); nothing once ``done[0]``."""
+    v = wp.tid()
+    if done[0] != 0:
+        return
+    lo, hi = vertex_box(x0, x1, v, gap)
+    c = 0.5 * (lo + hi)
+    q = wp.hash_grid_query(grid, c, grid_radius(c, 0.5 * wp.length(hi - lo), rmax[0]))
+    t = int(0)
+    while wp.hash_grid_query_next(q, t):
+        if boxes_overlap(lo, hi, lowers[t], uppers[t]):
+            vt_pair(v, t, x0, x1, tris, gap, sep, inv_mass, rec, pairs, npairs)
+
+
+@wp.kernel
+def self_ee_bvh_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                       edges: wp.array2d(dtype=wp.int32), gap: float, sep: float,
+                       inv_mass: wp.array(dtype=float), done: wp.array(dtype=int),
+                       rec: ContactRecord, pairs: wp.array(dtype=wp.vec2i),
+                       npairs: wp.array(dtype=int)):
+    """Edge ``e`` against the edges of higher index whose swept box meets its own (BVH);
+    nothing once ``done[0]``."""
+    e = wp.tid()
+    if done[0] != 0:
+        return
+    lo, hi = edge_box(x0, x1, edges, e, gap)
     q = wp.bvh_query_aabb(bvh, lo, hi)
     f = int(0)
     while wp.bvh_query_next(q, f):
-        if f <= e:
-            continue
-        ic = edges[f, 0]
-        id = edges[f, 1]
-        if ic == ia or ic == ib or id == ia or id == ib:
-            continue
-        if inv_mass[ia] + inv_mass[ib] + inv_mass[ic] + inv_mass[id] == 0.0:
-            continue
-        s, toi = ccd_edge_edge(d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(x0[id]), d3(x1[ia]),
-                               d3(x1[ib]), d3(x1[ic]), d3(x1[id]), wp.float64(gap), CCD_ITERATIONS)
-        if s == CCD_MISS:
-            continue
-        n, s1, t1, ok = ee_impact(x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], x0[id],
-                                  x1[id], toi)
-        if not ok:
-            continue
-        w = wp.vec4(1.0 - s1, s1, -(1.0 - t1), -t1)
-        record_append(rec, KIND_EDGE_EDGE, wp.vec4i(ia, ib, ic, id), w, n, sep, wp.vec3(0.0),
-                      0.0, 0.0, -1)
+        ee_pair(e, f, x0, x1, edges, gap, sep, inv_mass, rec, pairs, npairs)
+
+
+@wp.kernel
+def self_ee_grid_kernel(grid: wp.uint64, lowers: wp.array(dtype=wp.vec3),
+                        uppers: wp.array(dtype=wp.vec3), rmax: wp.array(dtype=float),
+                        x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                        edges: wp.array2d(dtype=wp.int32), gap: float, sep: float,
+                        inv_mass: wp.array(dtype=float), done: wp.array(dtype=int),
+                        rec: ContactRecord, pairs: wp.array(dtype=wp.vec2i),
+                        npairs: wp.array(dtype=int)):
+    """Edge ``e`` against the edges of higher index whose swept box meets its own (hash grid);
+    nothing once ``done[0]``."""
+    e = wp.tid()
+    if done[0] != 0:
+        return
+    lo, hi = edge_box(x0, x1, edges, e, gap)
+    c = 0.5 * (lo + hi)
+    q = wp.hash_grid_query(grid, c, grid_radius(c, 0.5 * wp.length(hi - lo), rmax[1]))
+    f = int(0)
+    while wp.hash_grid_query_next(q, f):
+        if f > e and boxes_overlap(lo, hi, lowers[f], uppers[f]):
+            ee_pair(e, f, x0, x1, edges, gap, sep, inv_mass, rec, pairs, npairs)
 
 
 @wp.kernel
 def revert_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
                   x_start: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float),
-                  everything: int, stats: wp.array(dtype=int),
-                  slot: int, num_threads: int):
-    """Fail-safe: the vertices of the remaining entries (``everything``: all vertices, once any
-    entry remains) back at their start positions with zero velocity."""
+                  stats: wp.array(dtype=int), slot: int, num_threads: int):
+    """Last resort, once any entry remains: every free vertex back at its start position with
+    zero velocity (``stats[slot]`` += 1)."""
     t = wp.tid()
-    count = wp.min(rec.count[0], rec.vertex.shape[0])
-    if count == 0:
+    if rec.count[0] == 0:
         return
-    if everything != 0:
-        for i in range(t, x.shape[0], num_threads):
-            if inv_mass[i] > 0.0:
-                x[i] = x_start[i]
-                v[i] = wp.vec3(0.0)
-        if t == 0:
-            stats[slot] = stats[slot] + 1
-        return
-    for e in range(t, count, num_threads):
-        vid = rec.vertex[e]
-        for j in range(4):
-            i = vid[j]
-            if i >= 0 and inv_mass[i] > 0.0:
-                x[i] = x_start[i]
-                v[i] = wp.vec3(0.0)
-                wp.atomic_add(stats, slot, 1)
+    for i in range(t, x.shape[0], num_threads):
+        if inv_mass[i] > 0.0:
+            x[i] = x_start[i]
+            v[i] = wp.vec3(0.0)
+    if t == 0:
+        stats[slot] = stats[slot] + 1
 
 
 @wp.kernel
@@ -176,42 +264,86 @@ class SelfCollision:
         iterations: Jacobi projection rounds per detection (default 4).
         capacity: record entries per detection (default ``16 * (vertices + edges)``); more are
             counted in ``stats["self_overflow"]``.
+        zone_passes: detections that grow the rigid impact zones (default 3; 0: the whole
+            cloth returns to its start whenever the rounds leave a path too close).
+        broadphase: ``"bvh"`` (swept-box BVHs refitted each step) or ``"grid"`` (hash grids of
+            the box centres rebuilt each step); both find every pair whose swept boxes overlap
+            (`warp_cloth.collision.broadphase`).
     """
 
     def __init__(self, model, thickness: float, rounds: int = 4, iterations: int = 4,
-                 capacity: int | None = None):
+                 capacity: int | None = None, broadphase: str = "bvh", zone_passes: int = 3):
         self.model = model
         self.device = d = model.device
         self.thickness = float(thickness)
         self.rounds, self.iterations = int(rounds), int(iterations)
         if self.rounds < 1 or self.iterations < 1:
             raise ValueError("self-collision rounds and iterations must be >= 1")
-        self.broad = ClothBroadPhase(model)
+        self.broad = ClothBroadPhase(model, broadphase)
         n = model.num_vertices
         self.capacity = int(capacity or 16 * (n + self.broad.num_edges))
         self.record = make_record(self.capacity, d)
         self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
         self.cnt = wp.zeros(n, dtype=int, device=d)
         self.threads = max(1, -(-self.capacity // 16))
-        # per step: [contacts found (all rounds), overflow, vertices reverted, whole reverts]
-        self.counters = wp.zeros(4, dtype=int, device=d)
-        self.totals = wp.zeros(4, dtype=int, device=d)  # the same, summed over all steps
+        # per step: STAT_KEYS
+        self.counters = wp.zeros(len(STAT_KEYS), dtype=int, device=d)
+        self.totals = wp.zeros(len(STAT_KEYS), dtype=int, device=d)  # summed over all steps
+        self.zones = ImpactZones(model)
+        self.zone_passes = int(zone_passes)
+        if self.zone_passes < 0:
+            raise ValueError("self-collision zone_passes must be >= 0")
         self.done = wp.zeros(1, dtype=int, device=d)
         self.violated = wp.zeros(1, dtype=int, device=d)
         self._never = wp.zeros(1, dtype=int, device=d)
+        self._no_pairs = wp.zeros(0, dtype=wp.vec2i, device=d)
+        self._npairs = wp.zeros(1, dtype=int, device=d)
 
     def detect(self, x0, x1, gap: float, record, done=None) -> None:
         """Self-contacts on the paths ``x0 -> x1`` that come within ``gap`` appended to
         ``record`` as constraints keeping the thickness (none while ``done[0]``)."""
+        self._query(x0, x1, gap, record, self._never if done is None else done,
+                    self._no_pairs, self._no_pairs, self._npairs)
+
+    def candidates(self, x0, x1, gap: float, capacity: int = 1 << 20):
+        """The broad phase's candidate pairs for the paths ``x0 -> x1`` with pad ``gap``, after
+        the topological and pinned filters: ``(vt, ee)`` as sets of ``(vertex, triangle)`` and
+        ``(edge, edge)`` index pairs. Host reads: for tests and benchmarks, not for steps."""
+        out = []
+        for kind in (0, 1):
+            pairs = wp.zeros(capacity, dtype=wp.vec2i, device=self.device)
+            npairs = wp.zeros(1, dtype=int, device=self.device)
+            self._query(x0, x1, gap, self.record, self._never, pairs if kind == 0 else
+                        self._no_pairs, pairs if kind == 1 else self._no_pairs, npairs,
+                        vt=kind == 0, ee=kind == 1)
+            k = int(npairs.numpy()[0])
+            if k > capacity:
+                raise RuntimeError(f"{k} candidate pairs: more than capacity={capacity}")
+            out.append({tuple(int(i) for i in p) for p in pairs.numpy()[:k]})
+        return tuple(out)
+
+    def _query(self, x0, x1, gap, record, done, vt_pairs, ee_pairs, npairs, vt=True, ee=True):
         b, m, d = self.broad, self.model, self.device
-        done = self._never if done is None else done
         b.update(x0, x1, gap)
-        wp.launch(self_vt_kernel, m.num_vertices,
-                  [b.tri_bvh.id, x0, x1, b.tris, gap, self.thickness, m.inv_mass, done, record],
-                  device=d)
-        wp.launch(self_ee_kernel, b.num_edges,
-                  [b.edge_bvh.id, x0, x1, b.edges, gap, self.thickness, m.inv_mass, done,
-                   record], device=d)
+        common = [x0, x1]
+        if b.method == "grid":
+            if vt:
+                wp.launch(self_vt_grid_kernel, m.num_vertices,
+                          [b.tri_grid.id, b.lowers, b.uppers, b.rmax, *common, b.tris, gap,
+                           self.thickness, m.inv_mass, done, record, vt_pairs, npairs], device=d)
+            if ee:
+                wp.launch(self_ee_grid_kernel, b.num_edges,
+                          [b.edge_grid.id, b.elowers, b.euppers, b.rmax, *common, b.edges, gap,
+                           self.thickness, m.inv_mass, done, record, ee_pairs, npairs], device=d)
+        else:
+            if vt:
+                wp.launch(self_vt_bvh_kernel, m.num_vertices,
+                          [b.tri_bvh.id, *common, b.tris, gap, self.thickness, m.inv_mass, done,
+                           record, vt_pairs, npairs], device=d)
+            if ee:
+                wp.launch(self_ee_bvh_kernel, b.num_edges,
+                          [b.edge_bvh.id, *common, b.edges, gap, self.thickness, m.inv_mass,
+                           done, record, ee_pairs, npairs], device=d)
 
     def _project(self, state, dt):
         m, d = self.model, self.device
@@ -240,21 +372,26 @@ class SelfCollision:
         # what is left after the last round: paths that still come within 5 % of the thickness
         # (all but touching: a crossing would pass through zero), fresh detection. Pairs merely
         # closer than the thickness (a fold tighter than it, a contact the rounds did not
-        # separate fully) are not a failure and keep their motion
+        # separate fully) are not a failure and keep their motion. Rigid impact zones, grown
+        # over `zone_passes` detections, then the whole cloth back to its start
         gap = FAILSAFE_GAP * self.thickness
-        for everything in (0, 1):
+        self.zones.reset()
+        for _ in range(self.zone_passes):
             self.record.count.zero_()
             self.detect(x_start, state.x, gap, self.record, self.done)
-            wp.launch(revert_kernel, self.threads,
-                      [self.record, state.x, state.v, x_start, m.inv_mass, everything,
-                       self.counters, 2 + everything, self.threads], device=d)
-        wp.launch(accumulate_kernel, 4, [self.counters, self.totals], device=d)
+            self.zones.merge(self.record, self.threads)
+            self.zones.move(self.record, x_start, state, dt, self.counters, 2)
+        self.record.count.zero_()
+        self.detect(x_start, state.x, gap, self.record, self.done)
+        wp.launch(revert_kernel, self.threads,
+                  [self.record, state.x, state.v, x_start, m.inv_mass, self.counters, 4,
+                   self.threads], device=d)
+        wp.launch(accumulate_kernel, len(STAT_KEYS), [self.counters, self.totals], device=d)
 
     @property
     def stats(self) -> dict:
         """The last step's counts, and (``*_total``) their sums over every step so far."""
         c, t = self.counters.numpy(), self.totals.numpy()
-        keys = ("self_contacts", "self_overflow", "self_fallback_vertices", "self_fallback_all")
-        out = {k: int(v) for k, v in zip(keys, c)}
-        out.update({k + "_total": int(v) for k, v in zip(keys, t)})
+        out = {k: int(v) for k, v in zip(STAT_KEYS, c)}
+        out.update({k + "_total": int(v) for k, v in zip(STAT_KEYS, t)})
         return out

@@ -76,6 +76,9 @@ class CollisionStage:
             empty.
         self_thickness: m, > 0: the distance kept between non-adjacent parts of the cloth
             (default: the obstacle contact thickness).
+        self_broadphase: ``"bvh"`` or ``"grid"`` (`warp_cloth.collision.broadphase`): how
+            self-collision finds its candidate pairs (default ``"bvh"``, the faster here:
+            ``warp-cloth bench selfcollision``).
         **contact_options: `ObstacleContact` options (``thickness``, ``friction``,
             ``restitution``, ``ccd``, ``slack``, ...), when ``obstacles`` are shapes.
 
@@ -90,7 +93,7 @@ class CollisionStage:
 
     def __init__(self, model, obstacles=(), *, solve_margin: float = DEFAULT_SOLVE_MARGIN,
                  edges: bool = True, self_collision=False, self_thickness: float | None = None,
-                 **contact_options):
+                 self_broadphase: str = "bvh", **contact_options):
         contact = None
         if isinstance(obstacles, ObstacleContact):
             if contact_options:
@@ -138,7 +141,8 @@ class CollisionStage:
                 th = (self_thickness if self_thickness is not None else
                       contact.thickness if contact is not None else
                       contact_options.get("thickness", DEFAULT_THICKNESS))
-                self.self_collision = SelfCollision(model, _positive("self_thickness", th))
+                self.self_collision = SelfCollision(model, _positive("self_thickness", th),
+                                                    broadphase=self_broadphase)
         n_obs = len(contact.obstacles) if contact is not None else 0
         # one vertex-obstacle entry per (vertex, obstacle) at most, and the pairs' shares
         self.capacity = model.num_vertices * n_obs + self.features.capacity

@@ -1,0 +1,254 @@
+"""Rigid impact zones (``physics.md`` 2.20; Provot 1997, Bridson et al. 2002, Harmon et al. 2008).
+
+The last resort of the self-collision response, for the contacts that the rounds of projection
+(`warp_cloth.collision.self_collision`) could not separate. The vertices of the remaining
+contacts are merged into **zones**: two contacts sharing a vertex are in the same zone (union by
+label propagation: each entry lowers the labels of its vertices to their minimum, then pointer
+jumping; a fixed number of passes, no host read). Each zone then moves **rigidly** over the step:
+its centre of mass moves as the zone's vertices did on average (linear momentum kept), and it
+turns by the rotation that keeps the zone's angular momentum about that centre
+(``theta = I^-1 sum m_i r_i x u_i``, with ``r_i`` the vertex's offset from the centre at the start
+and ``u_i`` its displacement relative to the centre: the rotation vector of the step), so the
+distances inside a zone stay what they were at the start of the step, when the cloth was free of
+crossings. A zone that holds pinned (or kinematically driven) vertices follows them instead: its rigid
+motion is the one fitted to the pinned vertices' prescribed motion (centroid and rotation vector
+of their displacements, weight 1 each), which is exact when they move rigidly (an edge held and
+turned) and otherwise their best rigid approximation; the pinned vertices themselves keep their
+prescribed positions.
+
+Zones are **grown**: after each rigid pass the paths are detected again, and the new contacts
+merge into the existing zones (labels persist through the step), up to ``passes`` times. If a
+path still comes too close after that, the caller returns the whole cloth to its start.
+
+All counts go to the caller's counters: the zones formed and the vertices moved rigidly.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .record import ContactRecord
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = ["ImpactZones"]
+
+#: label propagation passes per union (each pass: one sweep over the entries, one jump)
+UNION_PASSES = 4
+
+
+@wp.kernel
+def zone_mark_kernel(rec: ContactRecord, label: wp.array(dtype=int),
+                     member: wp.array(dtype=int), num_threads: int):
+    """The vertices of the record's entries become zone members (labels persist)."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        vid = rec.vertex[e]
+        for j in range(4):
+            v = vid[j]
+            if v >= 0:
+                member[v] = 1
+
+
+@wp.kernel
+def zone_union_kernel(rec: ContactRecord, label: wp.array(dtype=int), num_threads: int):
+    """One propagation sweep: every entry's vertices (and their current roots) take the
+    smallest label among them."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        vid = rec.vertex[e]
+        lo = int(2147483647)
+        for j in range(4):
+            v = vid[j]
+            if v >= 0:
+                lo = wp.min(lo, label[label[v]])
+        for j in range(4):
+            v = vid[j]
+            if v >= 0:
+                wp.atomic_min(label, label[v], lo)
+                wp.atomic_min(label, v, lo)
+
+
+@wp.kernel
+def zone_jump_kernel(label: wp.array(dtype=int)):
+    i = wp.tid()
+    label[i] = label[label[i]]
+
+
+@wp.kernel
+def zone_clear_kernel(rec: ContactRecord, zmass: wp.array(dtype=float),
+                      zc0: wp.array(dtype=wp.vec3), zc1: wp.array(dtype=wp.vec3),
+                      zang: wp.array(dtype=wp.vec3), zinert: wp.array(dtype=wp.mat33),
+                      zpinned: wp.array(dtype=int), zsize: wp.array(dtype=int)):
+    """The per-zone sums cleared (one launch instead of seven; nothing if no new entry)."""
+    i = wp.tid()
+    if rec.count[0] == 0:
+        return
+    zmass[i] = 0.0
+    zc0[i] = wp.vec3(0.0)
+    zc1[i] = wp.vec3(0.0)
+    zang[i] = wp.vec3(0.0)
+    zinert[i] = wp.mat33(0.0)
+    zpinned[i] = 0
+    zsize[i] = 0
+
+
+@wp.kernel
+def zone_pinned_kernel(rec: ContactRecord, member: wp.array(dtype=int),
+                       label: wp.array(dtype=int), inv_mass: wp.array(dtype=float),
+                       zpinned: wp.array(dtype=int), zsize: wp.array(dtype=int)):
+    """Zones holding a pinned vertex flagged; zone sizes."""
+    i = wp.tid()
+    if member[i] == 0 or rec.count[0] == 0:
+        return
+    wp.atomic_add(zsize, label[i], 1)
+    if inv_mass[i] <= 0.0:
+        zpinned[label[i]] = 1
+
+
+@wp.func
+def zone_weight(i: int, r: int, inv_mass: wp.array(dtype=float), zpinned: wp.array(dtype=int)):
+    """A vertex's weight in its zone's rigid motion: its mass, or in a pinned zone 1 for the
+    pinned vertices (whose prescribed motion the zone follows) and 0 for the free ones."""
+    if zpinned[r] != 0:
+        if inv_mass[i] <= 0.0:
+            return 1.0
+        return 0.0
+    return 1.0 / inv_mass[i]
+
+
+@wp.kernel
+def zone_sums_kernel(member: wp.array(dtype=int), label: wp.array(dtype=int),
+                     x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                     inv_mass: wp.array(dtype=float), zpinned: wp.array(dtype=int),
+                     zmass: wp.array(dtype=float), zc0: wp.array(dtype=wp.vec3),
+                     zc1: wp.array(dtype=wp.vec3)):
+    """Weight and weighted start and end positions per zone (at its root's index)."""
+    i = wp.tid()
+    if member[i] == 0:
+        return
+    r = label[i]
+    m = zone_weight(i, r, inv_mass, zpinned)
+    if m > 0.0:
+        wp.atomic_add(zmass, r, m)
+        wp.atomic_add(zc0, r, m * x0[i])
+        wp.atomic_add(zc1, r, m * x1[i])
+
+
+@wp.kernel
+def zone_moments_kernel(member: wp.array(dtype=int), label: wp.array(dtype=int),
+                        x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                        inv_mass: wp.array(dtype=float), zpinned: wp.array(dtype=int),
+                        zmass: wp.array(dtype=float),
+                        zc0: wp.array(dtype=wp.vec3), zc1: wp.array(dtype=wp.vec3),
+                        zang: wp.array(dtype=wp.vec3), zinert: wp.array(dtype=wp.mat33)):
+    """Angular momentum (times dt) and inertia tensor about the zone's start centre."""
+    i = wp.tid()
+    if member[i] == 0:
+        return
+    r = label[i]
+    m = zone_weight(i, r, inv_mass, zpinned)
+    if m <= 0.0:
+        return
+    M = zmass[r]
+    c0 = zc0[r] / M
+    c1 = zc1[r] / M
+    q = x0[i] - c0
+    u = (x1[i] - x0[i]) - (c1 - c0)
+    wp.atomic_add(zang, r, m * wp.cross(q, u))
+    wp.atomic_add(zinert, r, m * (wp.dot(q, q) * wp.identity(3, dtype=float) - wp.outer(q, q)))
+
+
+@wp.kernel
+def zone_move_kernel(rec: ContactRecord, member: wp.array(dtype=int), label: wp.array(dtype=int),
+                     x0: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3),
+                     v: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float),
+                     zmass: wp.array(dtype=float), zc0: wp.array(dtype=wp.vec3),
+                     zc1: wp.array(dtype=wp.vec3), zang: wp.array(dtype=wp.vec3),
+                     zinert: wp.array(dtype=wp.mat33), zpinned: wp.array(dtype=int),
+                     inv_dt: float, counters: wp.array(dtype=int), slot: int):
+    """Each free zone member to its zone's rigid end position,
+    ``v = (x - x0) / dt``; the zones (roots) and moved vertices counted. Nothing when the
+    record is empty (the zones are already rigid: no new contact merged into them)."""
+    i = wp.tid()
+    if member[i] == 0 or rec.count[0] == 0:
+        return
+    r = label[i]
+    if r == i:
+        wp.atomic_add(counters, slot, 1)
+    if inv_mass[i] <= 0.0:
+        return
+    wp.atomic_add(counters, slot + 1, 1)
+    M = zmass[r]
+    c0 = zc0[r] / M
+    c1 = zc1[r] / M
+    I = zinert[r]
+    # regularised: a zone on a line (or a point) has no inertia about some axis
+    eps = 1.0e-6 * (I[0, 0] + I[1, 1] + I[2, 2]) + 1.0e-30
+    theta = wp.inverse(I + eps * wp.identity(3, dtype=float)) * zang[r]
+    ang = wp.length(theta)
+    q = x0[i] - c0
+    rq = q
+    if ang > 1.0e-12:
+        rq = wp.quat_rotate(wp.quat_from_axis_angle(theta / ang, ang), q)
+    xn = c1 + rq
+    x[i] = xn
+    v[i] = (xn - x0[i]) * inv_dt
+
+
+class ImpactZones:
+    """Zone labels and per-zone sums for a model's vertices (module docstring)."""
+
+    def __init__(self, model):
+        n = model.num_vertices
+        d = self.device = model.device
+        self.model = model
+        self.label = wp.zeros(n, dtype=int, device=d)
+        self.member = wp.zeros(n, dtype=int, device=d)
+        self.zmass = wp.zeros(n, dtype=float, device=d)
+        self.zc0 = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.zc1 = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.zang = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.zinert = wp.zeros(n, dtype=wp.mat33, device=d)
+        self.zpinned = wp.zeros(n, dtype=int, device=d)
+        self.zsize = wp.zeros(n, dtype=int, device=d)
+        import numpy as np
+
+        self._iota = wp.array(np.arange(n, dtype=np.int32), dtype=int, device=d)
+
+    def reset(self) -> None:
+        """No zones (start of a step)."""
+        wp.copy(self.label, self._iota)
+        self.member.zero_()
+
+    def merge(self, rec: ContactRecord, threads: int) -> None:
+        """The record's entries merged into the zones."""
+        d = self.device
+        wp.launch(zone_mark_kernel, threads, [rec, self.label, self.member, threads], device=d)
+        for _ in range(UNION_PASSES):
+            wp.launch(zone_union_kernel, threads, [rec, self.label, threads], device=d)
+            wp.launch(zone_jump_kernel, len(self.label), [self.label], device=d)
+        # roots settle after the last sweep: two more jumps make every label a root
+        for _ in range(2):
+            wp.launch(zone_jump_kernel, len(self.label), [self.label], device=d)
+
+    def move(self, rec: ContactRecord, x0, state, dt: float, counters, slot: int) -> None:
+        """Every zone moved rigidly (or held at its start if pinned), unless ``rec`` (the
+        entries just merged) is empty; ``counters[slot]`` += zones, ``counters[slot + 1]`` +=
+        free vertices moved."""
+        m, d, n = self.model, self.device, len(self.label)
+        wp.launch(zone_clear_kernel, n, [rec, self.zmass, self.zc0, self.zc1, self.zang,
+                                         self.zinert, self.zpinned, self.zsize], device=d)
+        wp.launch(zone_pinned_kernel, n, [rec, self.member, self.label, m.inv_mass, self.zpinned,
+                                          self.zsize], device=d)
+        wp.launch(zone_sums_kernel, n, [self.member, self.label, x0, state.x, m.inv_mass,
+                                        self.zpinned, self.zmass, self.zc0, self.zc1], device=d)
+        wp.launch(zone_moments_kernel, n, [self.member, self.label, x0, state.x, m.inv_mass,
+                                           self.zpinned, self.zmass, self.zc0, self.zc1,
+                                           self.zang, self.zinert], device=d)
+        wp.launch(zone_move_kernel, n, [rec, self.member, self.label, x0, state.x, state.v,
+                                        m.inv_mass, self.zmass, self.zc0, self.zc1, self.zang,
+                                        self.zinert, self.zpinned, 1.0 / dt, counters, slot],
+                  device=d)
