@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -220,7 +221,9 @@ def read_playback(path, prim_paths=None) -> Playback:
     try:
         stage = Usd.Stage.Open(path)
     except Exception as e:  # noqa: BLE001 - pxr raises Tf errors of its own types
-        raise ValueError(f"USD cannot open {path}: {str(e).strip().splitlines()[-1]}") from None
+        quoted = re.findall(r"'([^']+)'", str(e))
+        detail = quoted[-1] if quoted else str(e).strip().splitlines()[-1]
+        raise ValueError(f"USD cannot open {path}: {detail}") from None
     if stage is None:
         raise ValueError(f"USD cannot open {path}")
     tcps = float(stage.GetTimeCodesPerSecond() or 24.0)

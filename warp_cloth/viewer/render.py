@@ -341,26 +341,30 @@ def parse_frames(spec: str, num_frames: int) -> list:
     """Frame indices from ``"a:b:step"`` (Python slice syntax, any part optional; ``"-1"`` or
     ``"5"`` is one frame). Raises ValueError naming the problem."""
     s = spec.strip()
-    try:
-        if ":" in s:
-            bits = s.split(":")
-            if len(bits) > 3:
-                raise ValueError
-            a, b, c = (bits + [""] * 3)[:3]
-            sl = slice(int(a) if a else None, int(b) if b else None, int(c) if c else None)
-            if sl.step is not None and sl.step <= 0:
-                raise ValueError(f"--frames {spec!r}: step must be positive")
-            out = list(range(num_frames))[sl]
-        else:
-            f = int(s)
-            if not -num_frames <= f < num_frames:
-                raise ValueError(f"--frames {spec!r}: the stage has {num_frames} frames "
-                                 f"(0..{num_frames - 1})")
-            out = [f % num_frames]
-    except ValueError as e:
-        if str(e):
-            raise
-        raise ValueError(f"--frames expects A:B:STEP or a frame index, got {spec!r}") from None
+    usage = f"--frames expects A:B:STEP (integers, each optional) or a frame index, got {spec!r}"
+
+    def num(v):
+        try:
+            return int(v) if v.strip() else None
+        except ValueError:
+            raise ValueError(usage) from None
+
+    if ":" in s:
+        bits = s.split(":")
+        if len(bits) > 3:
+            raise ValueError(usage)
+        a, b, c = (num(v) for v in (bits + [""] * 3)[:3])
+        if c is not None and c <= 0:
+            raise ValueError(f"--frames {spec!r}: step must be positive")
+        out = list(range(num_frames))[slice(a, b, c)]
+    else:
+        f = num(s)
+        if f is None:
+            raise ValueError(usage)
+        if not -num_frames <= f < num_frames:
+            raise ValueError(f"--frames {spec!r}: the stage has {num_frames} frames "
+                             f"(0..{num_frames - 1})")
+        out = [f % num_frames]
     if not out:
         raise ValueError(f"--frames {spec!r} selects no frame of the {num_frames} in the stage")
     return out
