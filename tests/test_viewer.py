@@ -189,11 +189,15 @@ def _screenshot(exe, page, frame, out, profile):
     return np.asarray(Image.open(out).convert("RGB"))
 
 
-@pytest.mark.skipif(_chromium() is None, reason="no chromium installed (.ci/run installs it)")
 def test_page_in_headless_chromium(stage_path, tmp_path):
     """The written page, opened in a real browser: the cloth's pixels are there at frame 0, and
     at frame 2 (the square's side halved; decoded through the predicted deltas of frame 1) there
-    are far fewer of them."""
+    are far fewer of them. Skipped without Chromium unless WARP_CLOTH_REQUIRE_BROWSER=1 (set by
+    .ci/run once it has installed it)."""
+    if _chromium() is None:
+        if os.environ.get("WARP_CLOTH_REQUIRE_BROWSER") == "1":
+            pytest.fail("WARP_CLOTH_REQUIRE_BROWSER=1 but no chromium on PATH")
+        pytest.skip("no chromium installed (.ci/run installs Debian's package)")
     page = tmp_path / "square.html"
     write_page(read_playback(stage_path), page)
     exe = _chromium()
