@@ -128,7 +128,9 @@ def test_quantised_frames_round_trip():
     pts[:, :, 1] += 1.0
     lo, step, planes = quantise_frames(pts)
     back = dequantise_frames(lo, step, planes, 40, 50)
-    assert np.abs(back - pts).max() <= step.max() / 2 * 1.01
+    assert np.abs(back - pts).max() <= step / 2 * 1.01
+    ext = (pts.max(axis=(0, 1)) - pts.min(axis=(0, 1))).max()
+    assert step == pytest.approx(1e-4 * ext)
 
 
 def test_page_is_self_contained(stage_path):
