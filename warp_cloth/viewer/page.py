@@ -11,7 +11,7 @@ offline from a ``file://`` URL. The animation is packed per part (see `playback.
   (``q[f] - 2 q[f-1] + q[f-2]``, exact to invert), zigzag-coded to 16 bits, laid out x, y, z of
   all vertices per frame with the low and high bytes as separate planes, and the whole
   zlib-compressed. Smooth motion leaves small residuals, which compress well: measured by
-  ``warp-cloth bench render`` on a 2,500-vertex cloth, about 6.6 kB of page per frame (raw
+  ``warp-cloth bench render`` on a 2,500-vertex cloth, about 6.4 kB of page per frame (raw
   float32 would be 30 kB, 40 kB in base64);
 - a rigid part's local points (float32) and, when it moves, its 4x4 matrix per frame (float32).
 
