@@ -166,7 +166,7 @@ def _add_view_parsers(sub):
     g.add_argument("--camera", default=None, metavar="AZ,EL[,DIST]",
                    help="degrees around the up axis (0: from the front), degrees above the "
                         "horizon, metres from the centre (default 30,25 and a distance that "
-                        "frames the scene's bounds, floors left out)")
+                        "frames the bounds of the frames drawn, floors left out)")
     g.add_argument("--fov", type=_positive_float, default=40.0, help="vertical field of view, "
                    "degrees (default 40)")
     g.add_argument("--supersample", type=_positive_int, default=1,
@@ -369,7 +369,8 @@ def cmd_view(args, parser) -> int:
         import pathlib
         import webbrowser
 
-        webbrowser.open(pathlib.Path(os.path.abspath(out)).as_uri())
+        if not webbrowser.open(pathlib.Path(os.path.abspath(out)).as_uri()):
+            print(f"view: no browser could be started here; open {out} in one", file=sys.stderr)
     return 0
 
 
@@ -406,7 +407,9 @@ def render_file(path, out, *, frames=None, size=(640, 480), camera=None, fov=40.
         bad(str(e))
     w, h = size
     az, el, dist = cam_spec
-    cam = Camera.framing(playback.bounds(), playback.up_axis, az, el, dist, fov, w / h)
+    # frame what is drawn: the one frame of a PNG, the frames of a GIF
+    shown = idx[-1:] if ext == ".png" else idx
+    cam = Camera.framing(playback.bounds(frames=shown), playback.up_axis, az, el, dist, fov, w / h)
     r = Renderer(playback, w, h, cam, supersample=supersample, shadows=shadows, device=device)
     if ext == ".png":
         save_png(r.render(idx[-1]), out)

@@ -68,15 +68,17 @@ class Part:
         m = self.matrices[frame]
         return (self.points.astype(np.float64) @ m[:3, :3].T + m[:3, 3]).astype(np.float32)
 
-    def bounds(self) -> np.ndarray:
-        """(2, 3) world bounds over every frame."""
+    def bounds(self, frames=None) -> np.ndarray:
+        """(2, 3) world bounds over every frame, or over the frame indices ``frames``."""
+        sel = slice(None) if frames is None else list(frames)
         if self.deforming:
-            flat = self.points.reshape(-1, 3)
+            flat = self.points[sel].reshape(-1, 3)
             return np.stack([flat.min(axis=0), flat.max(axis=0)]).astype(np.float64)
         lo, hi = self.points.min(axis=0), self.points.max(axis=0)
         corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                             for z in (lo[2], hi[2])], dtype=np.float64)
-        w = np.einsum("fij,cj->fci", self.matrices[:, :3, :3], corners) + self.matrices[:, None, :3, 3]
+        m = self.matrices[sel]
+        w = np.einsum("fij,cj->fci", m[:, :3, :3], corners) + m[:, None, :3, 3]
         w = w.reshape(-1, 3)
         return np.stack([w.min(axis=0), w.max(axis=0)])
 
@@ -108,11 +110,12 @@ class Playback:
     def fps(self) -> float:
         return self.time_codes_per_second
 
-    def bounds(self, include_backdrop: bool = False) -> np.ndarray:
-        """(2, 3) world bounds over all frames: of every part, or (default) every part but the
-        static flat ones (floors), unless those are all there is."""
+    def bounds(self, include_backdrop: bool = False, frames=None) -> np.ndarray:
+        """(2, 3) world bounds over all frames (or the frame indices ``frames``): of every part,
+        or (default) every part but the static flat ones (floors), unless those are all there
+        is."""
         parts = [p for p in self.parts if include_backdrop or not p.is_backdrop()] or self.parts
-        b = np.stack([p.bounds() for p in parts])
+        b = np.stack([p.bounds(frames) for p in parts])
         return np.stack([b[:, 0].min(axis=0), b[:, 1].max(axis=0)])
 
     def frame_index(self, frames) -> list:
