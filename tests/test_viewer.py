@@ -210,3 +210,43 @@ def test_page_in_headless_chromium(stage_path, tmp_path):
     na, nb = int(_cloth_mask(a[view]).sum()), int(_cloth_mask(b[view]).sum())
     assert na > 0.02 * a[view].shape[0] * a.shape[1], na
     assert 0.15 * na < nb < 0.35 * na, (na, nb)      # a quarter of the area, in perspective
+
+
+def test_reads_our_writers_obstacles(tmp_path):
+    """Our writer's obstacle prims: a Box (a Cube scaled by an op on itself, under a translated
+    Xform), a Plane (a 4-point mesh) and a moving Sphere (time-sampled Xform) come back at their
+    true place and size."""
+    from warp_cloth.collision import Box, Plane, Sphere
+    from warp_cloth.collision.motion import Motion
+    from warp_cloth.usd import UsdWriter
+
+    path = tmp_path / "obstacles.usd"
+    ball = Sphere(0.1, (0.0, 0.5, 0.0), motion=Motion(linear_velocity=(1.0, 0.0, 0.0)))
+    with UsdWriter(path, fps=10) as w:
+        cloth = w.add_mesh("cloth", [[0, 1, 2]])
+        for ob in (Box((0.2, 0.1, 0.3), (1.0, 0.1, -1.0)), Plane(), ball):
+            w.add_obstacle(ob)
+        for f in range(3):
+            w.write_frame(f, {cloth: [[0, 1, 0], [1, 1, 0], [0, 1, 1.0 + f]]})
+    pb = read_playback(path)
+    by = {p.kind: p for p in pb.parts}
+    assert set(by) == {"Mesh", "Cube", "Sphere"} and len(pb.parts) == 4
+    np.testing.assert_allclose(by["Cube"].bounds(), [[0.8, 0.0, -1.3], [1.2, 0.2, -0.7]], atol=1e-6)
+    assert not by["Cube"].moving and by["Sphere"].moving
+    # 1 m/s for 0.2 s: the ball's centre at x = 0.2 at frame 2
+    np.testing.assert_allclose(by["Sphere"].world_points(2).mean(axis=0), [0.2, 0.5, 0.0], atol=1e-3)
+    floor = [p for p in pb.parts if p.is_backdrop()]
+    assert len(floor) == 1 and floor[0].path.startswith("/World/ground")
+    # framing leaves the 4 m floor out: x from the sphere's -0.1 to the box's 1.2
+    np.testing.assert_allclose(pb.bounds()[:, 0], [-0.1, 1.2], atol=1e-3)
+    np.testing.assert_allclose(pb.bounds(include_backdrop=True)[:, 0], [-2.0, 2.0], atol=1e-6)
+
+
+def test_run_preview_writes_png(tmp_path):
+    from PIL import Image
+
+    out = tmp_path / "h.usd"
+    assert cli.main(["run", "hanging", "--res", "4", "--frames", "3", "--out", str(out),
+                     "--preview", "--quiet"]) == 0
+    img = np.asarray(Image.open(tmp_path / "h.png").convert("RGB"))
+    assert img.shape == (480, 640, 3) and _cloth_mask(img).sum() > 0.05 * 640 * 480
