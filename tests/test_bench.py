@@ -136,3 +136,17 @@ def test_ccd_bench_totals_line(capsys):
     assert ccd.main(["--queries", here + "/data/ccd-queries", "--repeats", "1"]) == 0
     last = capsys.readouterr().out.strip().splitlines()[-1]
     assert last.startswith("total: queries=179 ") and "false_negatives=0" in last
+
+
+def test_render_bench_reports_time_and_page_size(capsys):
+    import json
+
+    from warp_cloth.bench import render
+
+    assert render.main(["--res", "6", "--frames", "6", "--torus", "12,8", "--size", "64x48",
+                        "--rounds", "2", "--json"]) == 0
+    row = json.loads(capsys.readouterr().out)
+    assert row["vertices"] == 49 and row["torus_triangles"] == 192 and row["frames"] == 6
+    assert row["obstacle_triangles"] == 192 + 2            # the torus and the floor
+    assert row["s_per_frame_no_shadows"] > 0 and row["s_per_frame_shadows"] > 0
+    assert 0 < row["page_bytes_per_frame"] and row["page_fixed_bytes"] < row["page_bytes"]

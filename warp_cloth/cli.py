@@ -4,6 +4,8 @@
                            --solver {explicit,implicit,pbd,pd} --stiffness K --density RHO ...]
     warp-cloth bench NAME [options of that benchmark]
     warp-cloth check FILE.usd [--prim PATH --json]
+    warp-cloth view FILE.usd [--out PAGE.html --open]
+    warp-cloth render FILE.usd --out X.png|X.gif [--frames A:B:STEP --size WxH --camera AZ,EL[,D]]
     warp-cloth info
 
 Bad options and values give a usage error (exit status 2), never a traceback.
@@ -27,7 +29,7 @@ CONTACT_SCENES = ["drape", "table", "spin", "mesh", "thin", "fold", "stack"]
 SCENE_SOLVERS = {"fold": "implicit", "twist": "implicit", "stack": "implicit"}
 CONTACT_OPTIONS = ["friction", "restitution", "thickness"]
 BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability", "ccd",
-               "selfcollision"]
+               "selfcollision", "render"]
 
 # option -> (solver option name, solvers that accept it)
 SOLVER_OPTIONS = {
@@ -130,6 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0")
     r.add_argument("--quiet", action="store_true", help="no progress bar or Warp messages")
     r.add_argument("--json", action="store_true", help="print the run statistics as JSON")
+    r.add_argument("--preview", action="store_true",
+                   help="also write a PNG of the last frame beside the USD (OUT with .png)")
 
     b = sub.add_parser("bench", help="benchmarks: warp-cloth bench NAME --help",
                        add_help=False)
@@ -142,8 +146,33 @@ def build_parser() -> argparse.ArgumentParser:
                    "time-sampled mesh)")
     c.add_argument("--json", action="store_true", help="print the counts as JSON")
 
+    _add_view_parsers(sub)
     sub.add_parser("info", help="versions and devices")
     return p
+
+
+def _add_view_parsers(sub):
+    v = sub.add_parser("view", help="write a self-contained HTML page that plays a USD file")
+    v.add_argument("file", help="a .usd/.usda/.usdc with meshes (time-sampled or not)")
+    v.add_argument("--out", default=None, help="the page to write (default: FILE with .html)")
+    v.add_argument("--open", action="store_true", help="open the page in the default browser")
+    g = sub.add_parser("render", help="ray-cast PNG or GIF previews of a USD file (Warp kernels)")
+    g.add_argument("file", help="a .usd/.usda/.usdc with meshes (time-sampled or not)")
+    g.add_argument("--out", required=True, help="X.png (one frame) or X.gif (an animation)")
+    g.add_argument("--frames", default=None, metavar="A:B:STEP",
+                   help="frame indices, Python slice syntax (default: the last frame for a PNG, "
+                        "every frame for a GIF); a PNG takes the last frame selected")
+    g.add_argument("--size", default="640x480", metavar="WxH", help="pixels (default 640x480)")
+    g.add_argument("--camera", default=None, metavar="AZ,EL[,DIST]",
+                   help="degrees around the up axis (0: from the front), degrees above the "
+                        "horizon, metres from the centre (default 30,25 and a distance that "
+                        "frames the bounds of the frames drawn, floors left out)")
+    g.add_argument("--fov", type=_positive_float, default=40.0, help="vertical field of view, "
+                   "degrees (default 40)")
+    g.add_argument("--supersample", type=_positive_int, default=1,
+                   help="rays per pixel along each axis (anti-aliasing)")
+    g.add_argument("--no-shadows", action="store_true", help="skip the shadow rays")
+    g.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0")
 
 
 def _corrections(args):
@@ -210,6 +239,8 @@ def cmd_run(args, parser) -> int:
         stats = scene.run(out, quiet=args.quiet)
     except SimulationDiverged as e:
         print(f"warp-cloth: {e}; {out} holds the frames before it", file=sys.stderr)
+        if args.preview and os.path.isfile(out):
+            _write_preview(out, args.device)
         return 3
     except KeyboardInterrupt:
         print(f"\nwarp-cloth: interrupted; {out} holds the frames done so far", file=sys.stderr)
@@ -218,6 +249,8 @@ def cmd_run(args, parser) -> int:
         print(json.dumps(stats.as_dict(), indent=2, default=str))
     else:
         print(stats.summary())
+    if args.preview:
+        _write_preview(out, args.device)
     return 0
 
 
@@ -303,6 +336,121 @@ def cmd_check(args, parser) -> int:
     return 1 if bad else 0
 
 
+def _read_playback(path, parser, command):
+    """The stage's animation, or a one-line usage error naming the file."""
+    from .viewer.playback import read_playback
+
+    if not os.path.isfile(path):
+        parser.error(f"{command}: no such file: {path}")
+    if os.path.splitext(path)[1].lower() not in (".usd", ".usda", ".usdc", ".usdz"):
+        parser.error(f"{command}: expected a .usd, .usda, .usdc or .usdz file, got {path!r}")
+    try:
+        return read_playback(path)
+    except ValueError as e:
+        parser.error(f"{command}: {e}")
+
+
+def cmd_view(args, parser) -> int:
+    """Write the player page (and open it with --open)."""
+    from .viewer.page import write_page
+
+    out = args.out or os.path.splitext(args.file)[0] + ".html"
+    if not out.lower().endswith((".html", ".htm")):
+        parser.error(f"view: --out must name an .html file, got {out!r}")
+    if not os.path.isdir(os.path.dirname(os.path.abspath(out))):
+        parser.error(f"view: --out: directory {os.path.dirname(os.path.abspath(out))!r} "
+                     "does not exist")
+    pb = _read_playback(args.file, parser, "view")
+    size = write_page(pb, out)
+    verts = sum(p.num_vertices for p in pb.parts)
+    print(f"wrote {out}: {pb.num_frames} frames, {len(pb.parts)} prims, {verts} vertices, "
+          f"{size / 1e6:.2f} MB")
+    if args.open:
+        import pathlib
+        import webbrowser
+
+        if not webbrowser.open(pathlib.Path(os.path.abspath(out)).as_uri()):
+            print(f"view: no browser could be started here; open {out} in one", file=sys.stderr)
+    return 0
+
+
+def render_file(path, out, *, frames=None, size=(640, 480), camera=None, fov=40.0,
+                supersample=1, shadows=True, device=None, parser=None, playback=None):
+    """Render ``path`` (a USD file) to ``out`` (.png: one frame; .gif: the frames selected).
+    ``frames`` is an A:B:STEP string, ``camera`` an AZ,EL[,DIST] string. Returns the number of
+    frames written. Raises ValueError on bad input (or ``parser.error`` when given one)."""
+    from .viewer.playback import read_playback
+    from .viewer.render import Camera, Renderer, parse_camera, parse_frames, save_gif, save_png
+
+    def bad(msg):
+        if parser is not None:
+            parser.error(f"render: {msg}")
+        raise ValueError(msg)
+
+    ext = os.path.splitext(out)[1].lower()
+    if ext not in (".png", ".gif"):
+        bad(f"--out must name a .png or .gif file, got {out!r}")
+    if not os.path.isdir(os.path.dirname(os.path.abspath(out))):
+        bad(f"--out: directory {os.path.dirname(os.path.abspath(out))!r} does not exist")
+    try:
+        cam_spec = parse_camera(camera) if camera is not None else (30.0, 25.0, None)
+    except ValueError as e:
+        bad(str(e))
+    if playback is None:
+        playback = _read_playback(path, parser, "render") if parser else read_playback(path)
+    try:
+        if frames is None:
+            idx = [playback.num_frames - 1] if ext == ".png" else list(range(playback.num_frames))
+        else:
+            idx = parse_frames(frames, playback.num_frames)
+    except ValueError as e:
+        bad(str(e))
+    w, h = size
+    az, el, dist = cam_spec
+    # frame what is drawn: the one frame of a PNG, the frames of a GIF
+    shown = idx[-1:] if ext == ".png" else idx
+    cam = Camera.framing(playback.bounds(frames=shown), playback.up_axis, az, el, dist, fov, w / h)
+    r = Renderer(playback, w, h, cam, supersample=supersample, shadows=shadows, device=device)
+    if ext == ".png":
+        save_png(r.render(idx[-1]), out)
+        return 1
+    step = idx[1] - idx[0] if len(idx) > 1 else 1
+    times = playback.times
+    dt = (times[idx[1]] - times[idx[0]]) / playback.time_codes_per_second if len(idx) > 1 else 0
+    fps = 1.0 / dt if dt > 0 else playback.fps / step
+    save_gif([r.render(i) for i in idx], out, fps)
+    return len(idx)
+
+
+def cmd_render(args, parser) -> int:
+    from .viewer.render import parse_size
+
+    quiet_warp()
+    try:
+        size = parse_size(args.size)
+    except ValueError as e:
+        parser.error(f"render: {e}")
+    if args.device is not None:
+        import warp as wp
+
+        try:
+            wp.get_device(args.device)
+        except Exception as e:  # noqa: BLE001 - Warp raises RuntimeError/ValueError here
+            parser.error(f"render: --device {args.device!r}: {e}")
+    n = render_file(args.file, args.out, frames=args.frames, size=size, camera=args.camera,
+                    fov=args.fov, supersample=args.supersample, shadows=not args.no_shadows,
+                    device=args.device, parser=parser)
+    print(f"wrote {args.out}: {n} frame{'s' if n != 1 else ''}, {size[0]}x{size[1]}")
+    return 0
+
+
+def _write_preview(usd_path, device=None) -> None:
+    """``run --preview``: a PNG of the last frame beside the USD."""
+    png = os.path.splitext(usd_path)[0] + ".png"
+    render_file(usd_path, png, device=device)
+    print(f"preview: {png}", file=sys.stderr)  # stderr: keeps --json output parseable
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -312,6 +460,10 @@ def main(argv=None) -> int:
         return cmd_bench(args, parser)
     if args.command == "check":
         return cmd_check(args, parser)
+    if args.command == "view":
+        return cmd_view(args, parser)
+    if args.command == "render":
+        return cmd_render(args, parser)
     return cmd_info()
 
 
