@@ -345,3 +345,42 @@ def test_weak_projection_falls_back_on_impact_zones_not_crossings():
     assert st["self_zones_total"] > 0 and st["self_zone_vertices_total"] >= 2
     assert st["self_fallback_all_total"] == 0
     assert max(crossings) == 0
+
+
+def test_run_counts_crossings_and_cli_exit_status(tmp_path, capsys):
+    """``check_intersections``: RunStats counts the frames with crossings (none with
+    self-collision, some without), the CLI warns per frame and exits 5."""
+    scene = fold(solver="implicit", res=10, frames=40, size=0.6, angle=150.0,
+                 self_collision=False)
+    st = scene.run(None, quiet=True, energy=False, check_intersections=True)
+    assert st.crossing_frames > 0 and st.max_crossings > 0
+    assert "self-intersection: " in st.summary()
+    scene = fold(solver="implicit", res=10, frames=40, size=0.6, angle=150.0)
+    st = scene.run(None, quiet=True, energy=False, check_intersections=True)
+    assert st.crossing_frames == 0 and st.max_crossings == 0
+    assert scene.run(None, quiet=True, energy=False).crossing_frames is None  # not checked
+    out = tmp_path / "f.usd"
+    rc = cli.main(["run", "fold", "--res", "6", "--frames", "40", "--self-collision", "off",
+                   "--check-intersections", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 5 and "passes through itself" in err and "crossing edge-triangle pairs" in err
+
+
+def test_record_overflow_is_reported_and_the_record_regrows(capsys):
+    """A self-collision record with room for 4 entries: the dropped contacts are reported on
+    stderr, the room doubles at each frame end until nothing is dropped (the captured graph
+    recorded again with the new arrays)."""
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    scene = fold(solver="implicit", res=8, frames=30, size=0.6, angle=150.0)
+    m = scene.model
+    th = scene.collision.self_collision.thickness
+    sc = SelfCollision(m, th, capacity=4)
+    scene.collision.self_collision = sc
+    over = []
+    scene.run(None, energy=False, progress=False,
+              on_frame=lambda f, st: over.append(sc.stats["self_overflow"]))
+    err = capsys.readouterr().err
+    assert "did not fit the record; its room is doubled" in err
+    assert sc.capacity >= 64  # grew several times
+    assert over[-1] == 0 and max(over) > 0  # dropped early, nothing at the end

@@ -132,6 +132,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0")
     r.add_argument("--quiet", action="store_true", help="no progress bar or Warp messages")
     r.add_argument("--json", action="store_true", help="print the run statistics as JSON")
+    r.add_argument("--self-collision", choices=["on", "off"], default=None,
+                   help="keep the cloth from passing through itself (default: on for fold, "
+                        "twist and stack, off elsewhere)")
+    r.add_argument("--check-intersections", action="store_true",
+                   help="count the cloth's crossing edge-triangle pairs in every frame (warning "
+                        "per frame with any; exit status 5 if any)")
     r.add_argument("--preview", action="store_true",
                    help="also write a PNG of the last frame beside the USD (OUT with .png)")
 
@@ -217,6 +223,8 @@ def cmd_run(args, parser) -> int:
         val = getattr(args, opt)
         if val is not None:
             kw[name] = val
+    if args.self_collision is not None:
+        kw["self_collision"] = args.self_collision == "on"
     for opt in CONTACT_OPTIONS:
         val = getattr(args, opt)
         if val is None:
@@ -236,7 +244,7 @@ def cmd_run(args, parser) -> int:
     except (ValueError, TypeError, RuntimeError) as e:
         parser.error(str(e))
     try:
-        stats = scene.run(out, quiet=args.quiet)
+        stats = scene.run(out, quiet=args.quiet, check_intersections=args.check_intersections)
     except SimulationDiverged as e:
         print(f"warp-cloth: {e}; {out} holds the frames before it", file=sys.stderr)
         if args.preview and os.path.isfile(out):
@@ -251,6 +259,10 @@ def cmd_run(args, parser) -> int:
         print(stats.summary())
     if args.preview:
         _write_preview(out, args.device)
+    if stats.crossing_frames:
+        print(f"warp-cloth: the cloth passes through itself in {stats.crossing_frames} frames",
+              file=sys.stderr)
+        return 5
     return 0
 
 

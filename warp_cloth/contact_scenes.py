@@ -64,9 +64,10 @@ def sheet_model(*, res: int = 32, shape=None, size: float = 1.0, height: float =
 
 def _contact_scene(model, obstacles, *, solver, solver_options, fps, frames, substeps,
                    corrections, extra_obstacles, strain_bound, name, thickness, friction,
-                   restitution, ccd=True):
+                   restitution, ccd=True, self_collision=False):
     stage = CollisionStage(model, [*obstacles, *extra_obstacles], thickness=thickness,
-                           friction=friction, restitution=restitution, ccd=ccd)
+                           friction=friction, restitution=restitution, ccd=ccd,
+                           self_collision=self_collision)
     scene = _finish(model, solver, solver_options, corrections, fps, frames, substeps, (),
                     strain_bound, name, collision=stage)
     scene.contact = stage.contact
@@ -78,7 +79,8 @@ def drape(*, solver: str = "explicit", solver_options: dict | None = None, fps: 
           frames: int = 120, substeps=None, corrections=(), obstacles=(),
           strain_bound: float = 10.0, radius: float = 0.3, sphere_center=(0.0, 0.5, 0.0),
           ground: bool = False, thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
-          restitution: float = 0.0, height: float = 0.9, **model_args):
+          restitution: float = 0.0, height: float = 0.9, self_collision: bool = False,
+          **model_args):
     """A sheet dropped from ``height`` m onto a sphere of ``radius`` m (and a floor if
     ``ground``). ``obstacles``: more obstacles, simulated and drawn like the others."""
     model = sheet_model(height=height, **model_args)
@@ -88,14 +90,16 @@ def drape(*, solver: str = "explicit", solver_options: dict | None = None, fps: 
     return _contact_scene(model, obs, solver=solver, solver_options=solver_options, fps=fps,
                           frames=frames, substeps=substeps, corrections=corrections,
                           extra_obstacles=obstacles, strain_bound=strain_bound, name="drape",
-                          thickness=thickness, friction=friction, restitution=restitution)
+                          thickness=thickness, friction=friction, restitution=restitution,
+                          self_collision=self_collision)
 
 
 def table(*, solver: str = "explicit", solver_options: dict | None = None, fps: float = 60.0,
           frames: int = 180, substeps=None, corrections=(), obstacles=(),
           strain_bound: float = 10.0, table_size=(0.8, 0.75, 0.6), overhang: float = 0.45,
           thickness: float = DEFAULT_THICKNESS, friction: float = 0.15,
-          restitution: float = 0.0, height: float = 0.85, **model_args):
+          restitution: float = 0.0, height: float = 0.85, self_collision: bool = False,
+          **model_args):
     """A sheet dropped on a table (box ``table_size`` = width x height x depth, m) with its centre
     ``overhang`` m past the table's centre along +x, so that it slides off onto the floor."""
     w, h, d = (float(c) for c in table_size)
@@ -106,7 +110,8 @@ def table(*, solver: str = "explicit", solver_options: dict | None = None, fps: 
     return _contact_scene(model, obs, solver=solver, solver_options=solver_options, fps=fps,
                           frames=frames, substeps=substeps, corrections=corrections,
                           extra_obstacles=obstacles, strain_bound=strain_bound, name="table",
-                          thickness=thickness, friction=friction, restitution=restitution)
+                          thickness=thickness, friction=friction, restitution=restitution,
+                          self_collision=self_collision)
 
 
 def spin(*, solver: str = "explicit", solver_options: dict | None = None, fps: float = 60.0,
@@ -114,7 +119,8 @@ def spin(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
          strain_bound: float = 10.0, radius: float = 0.3, sphere_center=(0.0, 0.5, 0.0),
          spin_rate: float = 3.0, start: float = 1.0, ramp: float = 0.5,
          thickness: float = DEFAULT_THICKNESS, friction: float = 0.6,
-         restitution: float = 0.0, height: float = 0.85, **model_args):
+         restitution: float = 0.0, height: float = 0.85, self_collision: bool = False,
+         **model_args):
     """A sheet drapes over a sphere that starts spinning about +y at ``start`` s, reaching
     ``spin_rate`` rad/s after ``ramp`` s; friction carries the cloth round."""
     model = sheet_model(height=height, **model_args)
@@ -123,7 +129,8 @@ def spin(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
     return _contact_scene(model, [ball], solver=solver, solver_options=solver_options, fps=fps,
                           frames=frames, substeps=substeps, corrections=corrections,
                           extra_obstacles=obstacles, strain_bound=strain_bound, name="spin",
-                          thickness=thickness, friction=friction, restitution=restitution)
+                          thickness=thickness, friction=friction, restitution=restitution,
+                          self_collision=self_collision)
 
 
 def torus_path(rest: float = 0.8, move: float = 1.2, back: float = 1.0) -> KeyframePath:
@@ -142,7 +149,8 @@ def mesh(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
          strain_bound: float = 10.0, mesh_file: str | None = None, scale: float = 1.0,
          position=(0.0, 0.45, 0.0), path: KeyframePath | None = None, ground: bool = True,
          thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
-         restitution: float = 0.0, height: float = 0.65, **model_args):
+         restitution: float = 0.0, height: float = 0.65, self_collision: bool = False,
+         **model_args):
     """A sheet dropped on a triangle-mesh obstacle (default ``warp_cloth/assets/torus.obj``) that moves along
     a keyframed ``path`` (default `torus_path`), over a floor if ``ground``."""
     model = sheet_model(height=height, **model_args)
@@ -153,7 +161,8 @@ def mesh(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
     return _contact_scene(model, obs, solver=solver, solver_options=solver_options, fps=fps,
                           frames=frames, substeps=substeps, corrections=corrections,
                           extra_obstacles=obstacles, strain_bound=strain_bound, name="mesh",
-                          thickness=thickness, friction=friction, restitution=restitution)
+                          thickness=thickness, friction=friction, restitution=restitution,
+                          self_collision=self_collision)
 
 
 def thin_parts_mesh(*, blade=(0.5, 0.25, 0.003), blade_cells=(50, 24), ring_radius=0.3,
@@ -215,6 +224,7 @@ def thin(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
          frames: int = 120, substeps=None, corrections=(), obstacles=(),
          strain_bound: float = 10.0, thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
          restitution: float = 0.0, height: float = 0.45, size: float = 0.9, mesh_options=None,
+         self_collision: bool = False,
          **model_args):
     """A sheet dropped onto an obstacle with thin parts (`thin_parts_mesh`: a 3 mm blade and a
     12 mm ring, 9,704 triangles) over a floor: the cloth drapes over the blade's rim and the
@@ -224,7 +234,8 @@ def thin(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
     return _contact_scene(model, [ob, Plane()], solver=solver, solver_options=solver_options,
                           fps=fps, frames=frames, substeps=substeps, corrections=corrections,
                           extra_obstacles=obstacles, strain_bound=strain_bound, name="thin",
-                          thickness=thickness, friction=friction, restitution=restitution)
+                          thickness=thickness, friction=friction, restitution=restitution,
+                          self_collision=self_collision)
 
 
 def fold(*, solver: str = "implicit", solver_options: dict | None = None, fps: float = 60.0,

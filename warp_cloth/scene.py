@@ -50,6 +50,10 @@ class RunStats:
     captured: bool
     timed_frames: int = 0  # frames in wall_s (not the first, nor the one that recorded the graph)
     out: str | None = None
+    # with ``check_intersections``: frames whose cloth passes through itself, and the most
+    # crossing (edge, triangle) pairs in one frame (None: not checked)
+    crossing_frames: int | None = None
+    max_crossings: int | None = None
     extra: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -62,7 +66,11 @@ class RunStats:
             f"(first frame incl. compile {self.first_frame_s:.2f} s); max strain "
             f"{100 * self.max_strain:.3f} %, final {100 * self.final_max_strain:.3f} %; height "
             f"[{self.min_height:.3f}, {self.max_height:.3f}] m; energy {self.energy_initial:.4g} -> "
-            f"{self.energy_final:.4g} J" + (f"; wrote {self.out}" if self.out else "")
+            f"{self.energy_final:.4g} J"
+            + ("" if self.crossing_frames is None else
+               f"; self-intersection: {self.crossing_frames} of {self.frames} frames "
+               f"(at most {self.max_crossings} crossing pairs)")
+            + (f"; wrote {self.out}" if self.out else "")
         )
 
 
@@ -70,6 +78,14 @@ class _Progress:
     def __init__(self, total: int, enabled: bool, label: str):
         self.total, self.enabled, self.label = total, enabled, label
         self.t0 = _time.perf_counter()
+        self._last = 0.0
+
+    def note(self, msg: str):
+        """A line on stderr above the bar (the bar is drawn again on its next update)."""
+        if self.enabled:
+            sys.stderr.write("\r\033[K")
+        sys.stderr.write(msg + "\n")
+        sys.stderr.flush()
         self._last = 0.0
 
     def update(self, done: int):
@@ -143,8 +159,16 @@ class Scene:
         self.state = self.model.state()
 
     def run(self, out: str | os.PathLike | None = None, *, quiet: bool = False,
-            progress: bool | None = None, energy: bool = True, on_frame=None) -> RunStats:
+            progress: bool | None = None, energy: bool = True, on_frame=None,
+            check_intersections: bool = False) -> RunStats:
         """Run from the initial state; write ``out`` (a ``.usd``) if given.
+
+        ``check_intersections``: count every frame's crossing (edge, triangle) pairs of the cloth
+        (`warp_cloth.collision.check.SelfIntersectionChecker`) into ``RunStats.crossing_frames``
+        and ``max_crossings``, with a warning on stderr for each frame that has any (unless
+        ``quiet``). Whatever the option, a frame in which self-collision had to return the
+        whole cloth to its start, or dropped contacts for want of room, is reported on stderr
+        (unless ``quiet``); room is then doubled and the frame graph recorded again.
 
         Raises `SimulationDiverged` when a frame has a non-finite position or an edge strain above
         ``strain_bound``; the USD file then holds the frames before it. ``on_frame(frame, state)``
@@ -167,6 +191,14 @@ class Scene:
             for ob in self.obstacles:
                 writer.add_obstacle(ob)
         up = 1  # y up
+        checker = None
+        crossing_frames, max_crossings = 0, 0
+        if check_intersections:
+            from .collision.check import SelfIntersectionChecker
+
+            checker = SelfIntersectionChecker(model.mesh.triangles, model.mesh.edges,
+                                              model.num_vertices, device=model.device)
+        stage = getattr(solver, "collision", None)
         graph = None
         wall = 0.0
         first = 0.0
@@ -207,6 +239,20 @@ class Scene:
                     if mfin.max_strain > self.strain_bound:
                         raise SimulationDiverged(frame, solver.name, max_strain,
                                                  f"strain bound {self.strain_bound:g} exceeded")
+                if frame > 0 and stage is not None:
+                    for msg, regrown in stage.frame_end():
+                        if not quiet:
+                            bar.note(f"warning: frame {frame}: {msg}")
+                        if regrown:
+                            graph = None  # arrays were reallocated: record the graph again
+                if checker is not None:
+                    k = checker(state.x)
+                    if k:
+                        crossing_frames += 1
+                        max_crossings = max(max_crossings, k)
+                        if not quiet:
+                            bar.note(f"warning: frame {frame}: the cloth passes through itself "
+                                     f"({k} crossing edge-triangle pairs)")
                 x = state.x.numpy()
                 lo = min(lo, float(x[:, up].min()))
                 hi = max(hi, float(x[:, up].max()))
@@ -226,6 +272,8 @@ class Scene:
             final_max_strain=mfin.max_strain, min_height=lo, max_height=hi, energy_initial=e0,
             energy_final=mfin.energy, captured=graph is not None, timed_frames=timed,
             out=os.fspath(out) if out is not None else None, extra=dict(solver.stats),
+            crossing_frames=crossing_frames if checker is not None else None,
+            max_crossings=max_crossings if checker is not None else None,
         )
 
 

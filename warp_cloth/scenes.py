@@ -30,8 +30,12 @@ def _grid_shape(res, shape):
 
 
 def _finish(model, solver, solver_options, corrections, fps, frames, substeps, obstacles,
-            strain_bound, name, collision=None):
+            strain_bound, name, collision=None, self_collision: bool = False):
     solver_obj = make_solver(solver, model, **(solver_options or {}))
+    if collision is None and self_collision:
+        from .collision import CollisionStage
+
+        collision = CollisionStage(model, list(obstacles or ()), self_collision=True)
     if collision is not None:
         solver_obj.set_collision(collision)
     for c in corrections or ():
@@ -59,11 +63,12 @@ def hanging_model(*, res: int = 32, shape=None, size: float = 1.0, height: float
 
 def hanging(*, solver: str = "explicit", solver_options: dict | None = None, fps: float = 60.0,
             frames: int = 120, substeps=None, corrections=(), obstacles=(),
-            strain_bound: float = 10.0, **model_args) -> Scene:
-    """A sheet hanging from two corners (the GAMES103 lab scene in real-cloth units)."""
+            strain_bound: float = 10.0, self_collision: bool = False, **model_args) -> Scene:
+    """A sheet hanging from two corners (the GAMES103 lab scene in real-cloth units).
+    ``self_collision``: keep it from passing through itself (a `CollisionStage`)."""
     model = hanging_model(**model_args)
     return _finish(model, solver, solver_options, corrections, fps, frames, substeps, obstacles,
-                   strain_bound, "hanging")
+                   strain_bound, "hanging", self_collision=self_collision)
 
 
 def flag(*, solver: str = "explicit", solver_options: dict | None = None, fps: float = 60.0,
@@ -71,8 +76,9 @@ def flag(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
          size: float = 1.5, stiffness: float = DEFAULT_STRETCH_STIFFNESS,
          density: float = DEFAULT_DENSITY, wind_speed: float = 6.0, bending: str = "none",
          bend_stiffness: float = 0.0, damping: float = 0.1, strain_bound: float = 10.0,
-         device=None, **model_options) -> Scene:
-    """A flag ``size`` x ``2/3 size`` m pinned along its left edge (x = 0) in gusty wind along +x."""
+         device=None, self_collision: bool = False, **model_options) -> Scene:
+    """A flag ``size`` x ``2/3 size`` m pinned along its left edge (x = 0) in gusty wind along +x;
+    ``self_collision`` as `hanging`."""
     from .forces.wind import Wind
 
     nx, ny = _grid_shape(res, shape) if shape is not None else (res, max(1, round(res * 2 / 3)))
@@ -84,7 +90,7 @@ def flag(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
                        bend_stiffness=bend_stiffness, pins=pins, damping=damping, wind=wind,
                        device=device, **model_options)
     return _finish(model, solver, solver_options, corrections, fps, frames, substeps, obstacles,
-                   strain_bound, "flag")
+                   strain_bound, "flag", self_collision=self_collision)
 
 
 SCENES = {"hanging": hanging, "flag": flag}

@@ -388,6 +388,33 @@ class SelfCollision:
                    self.threads], device=d)
         wp.launch(accumulate_kernel, len(STAT_KEYS), [self.counters, self.totals], device=d)
 
+    def frame_end(self) -> list:
+        """Since the last call: steps that returned the whole cloth to its start, and dropped
+        contacts (the record's room is then doubled). ``(message, regrown)`` pairs; host
+        reads, once a frame (`CollisionStage.frame_end`)."""
+        t = self.totals.numpy()
+        seen = getattr(self, "_seen", None)
+        self._seen = t.copy()
+        if seen is None:
+            seen = 0 * t
+        out = []
+        i_all, i_over = STAT_KEYS.index("self_fallback_all"), STAT_KEYS.index("self_overflow")
+        if t[i_all] > seen[i_all]:
+            out.append((f"self-collision returned the whole cloth to its start in "
+                        f"{t[i_all] - seen[i_all]} step(s): contacts the projection and the "
+                        "impact zones could not resolve", False))
+        if t[i_over] > seen[i_over]:
+            self.grow(2 * self.capacity)
+            out.append((f"{t[i_over] - seen[i_over]} self-contacts did not fit the record; its "
+                        f"room is doubled to {self.capacity} entries", True))
+        return out
+
+    def grow(self, capacity: int) -> None:
+        """A record of ``capacity`` entries (allocation: outside any captured step)."""
+        self.capacity = int(capacity)
+        self.record = make_record(self.capacity, self.device)
+        self.threads = max(1, -(-self.capacity // 16))
+
     @property
     def stats(self) -> dict:
         """The last step's counts, and (``*_total``) their sums over every step so far."""

@@ -226,6 +226,13 @@ class CollisionStage:
         self._pairs(state, x_start, dt)
 
     # ------------------------------------------------------------------ reports
+    def frame_end(self) -> list:
+        """Called by the runner after each frame (host reads): ``(message, regrown)`` for each
+        thing to report: self-collision steps that returned the whole cloth to its start, and
+        contacts dropped for want of room (the record then doubles: ``regrown`` True, so a
+        recorded graph must be recorded again)."""
+        return [] if self.self_collision is None else self.self_collision.frame_end()
+
     @property
     def stats(self) -> dict:
         """Entries of the last `detect` and entries dropped for capacity (host reads)."""
