@@ -25,7 +25,27 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["TriMesh", "edge_triples"]
+__all__ = ["TriMesh", "edge_triples", "check_up_axis"]
+
+UP_AXES = ("Y", "Z")
+
+
+def _positive_finite(x, what: str) -> float:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a positive number, got {x!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{what} must be positive and finite, got {x!r}")
+    return v
+
+
+def check_up_axis(up_axis, where: str = "up_axis") -> str:
+    """``"Y"`` or ``"Z"`` (either case accepted); anything else raises `ValueError`."""
+    a = up_axis.upper() if isinstance(up_axis, str) else None
+    if a not in UP_AXES:
+        raise ValueError(f"{where}: up_axis must be 'Y' or 'Z', got {up_axis!r}")
+    return a
 
 
 def edge_triples(triangles: np.ndarray) -> np.ndarray:
@@ -54,6 +74,10 @@ class TriMesh:
         grid_shape: ``(nx, ny)`` when the mesh is a structured grid made by `TriMesh.grid`
             (vertex ``j * (nx + 1) + i``); enables the structured shear/bending springs.
         name: a label used in error messages and as the USD prim name.
+        up_axis: ``"Y"`` or ``"Z"``: the axis that points up in the frame of ``vertices``.
+            `ClothModel`'s default gravity points down along it, `RunStats` heights are measured
+            along it and the output stage records it. Loaders set it from the file
+            (`from_usd`: the stage's ``upAxis``; `from_obj`: the ``up_axis`` argument).
 
     Raises:
         ValueError: on non-finite coordinates, out-of-range or negative indices, a repeated vertex
@@ -65,11 +89,13 @@ class TriMesh:
     triangles: np.ndarray
     grid_shape: tuple[int, int] | None = None
     name: str = "cloth"
+    up_axis: str = "Y"
     edges: np.ndarray = field(init=False, repr=False)
     edge_tris: np.ndarray = field(init=False, repr=False)
     bend_quads: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
+        self.up_axis = check_up_axis(self.up_axis, self.name)
         v = np.asarray(self.vertices, dtype=np.float64)
         t = np.asarray(self.triangles)
         if v.ndim != 2 or v.shape[1] != 3:
@@ -208,6 +234,7 @@ class TriMesh:
         origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
         diagonals: str = "alternating",
         name: str = "cloth",
+        up_axis: str = "Y",
     ) -> "TriMesh":
         """A rectangular sheet of ``nx`` x ``ny`` cells, two triangles per cell.
 
@@ -217,7 +244,8 @@ class TriMesh:
 
         ``diagonals="alternating"`` flips the diagonal cell by cell (no directional bias);
         ``"fixed"`` uses the same diagonal everywhere. Triangles are counter-clockwise about
-        ``u x w``.
+        ``u x w``. ``up_axis`` is the mesh's up axis (``"Y"``: a ``plane="xz"`` sheet is
+        horizontal; ``"Z"``: a ``plane="xy"`` sheet is).
         """
         if int(nx) != nx or int(ny) != ny or nx < 1 or ny < 1:
             raise ValueError(f"grid: nx and ny must be positive integers, got ({nx}, {ny})")
@@ -246,18 +274,42 @@ class TriMesh:
                     tris += [(v00, v10, v11), (v00, v11, v01)]
                 else:
                     tris += [(v00, v10, v01), (v10, v11, v01)]
-        return cls(verts, np.asarray(tris, dtype=np.int64), grid_shape=(nx, ny), name=name)
+        return cls(verts, np.asarray(tris, dtype=np.int64), grid_shape=(nx, ny), name=name,
+                   up_axis=up_axis)
 
     # ------------------------------------------------------------------ loaders
     @classmethod
-    def from_obj(cls, path: str | os.PathLike, name: str | None = None) -> "TriMesh":
+    def from_obj(cls, path: str | os.PathLike, name: str | None = None, *, scale: float = 1.0,
+                 up_axis: str = "Y") -> "TriMesh":
         """Load a Wavefront OBJ file: ``v`` lines and ``f`` lines (``i``, ``i/t``, ``i//n``,
         ``i/t/n``, negative = relative indices). Quads and polygons are fan-triangulated; other
-        statements are ignored."""
+        statements are ignored.
+
+        OBJ files carry no unit or up axis: ``scale`` (metres per file unit, e.g. 0.01 for a file
+        in centimetres) multiplies every coordinate, and ``up_axis`` (``"Y"``, the OBJ
+        convention, or ``"Z"``) says which axis is up in the file; it becomes the mesh's
+        `up_axis` (coordinates are not rotated).
+
+        Raises:
+            ValueError: naming the file and line of a malformed or undecodable line, an index out
+                of range, or a bad ``scale``/``up_axis``.
+        """
+        up_axis = check_up_axis(up_axis, f"{path}")
+        scale = _positive_finite(scale, f"{path}: scale")
         verts, tris = [], []
         name = name or os.path.splitext(os.path.basename(str(path)))[0]
-        with open(path, "r", encoding="utf-8") as fh:
-            for lineno, line in enumerate(fh, 1):
+        with open(path, "rb") as fh:
+            for lineno, raw in enumerate(fh, 1):
+                try:
+                    line = raw.decode("utf-8")
+                except UnicodeDecodeError as e:
+                    # comments and names may be in any encoding; statements we read are ASCII
+                    line = raw.decode("latin-1")
+                    hash_at = raw.find(b"#")
+                    in_comment = 0 <= hash_at < e.start
+                    if not in_comment and line.split()[0] in ("v", "f"):
+                        raise ValueError(f"{path}:{lineno}: bytes that are not UTF-8 "
+                                         f"({e.reason} at column {e.start + 1})") from None
                 parts = line.split("#", 1)[0].split()
                 if not parts:
                     continue
@@ -277,14 +329,19 @@ class TriMesh:
                             raise ValueError(f"{path}:{lineno}: bad face index {tok!r}") from None
                         if k == 0:
                             raise ValueError(f"{path}:{lineno}: OBJ indices start at 1, got 0")
-                        idx.append(k - 1 if k > 0 else len(verts) + k)
+                        j = k - 1 if k > 0 else len(verts) + k
+                        if not 0 <= j < len(verts) and abs(k) > 2**62:
+                            raise ValueError(f"{path}:{lineno}: face index {k} is out of range "
+                                             f"(the file has {len(verts)} vertices so far)")
+                        idx.append(j)
                     if len(idx) < 3:
                         raise ValueError(f"{path}:{lineno}: face needs at least 3 vertices")
                     for q in range(1, len(idx) - 1):
                         tris.append((idx[0], idx[q], idx[q + 1]))
         if not verts:
             raise ValueError(f"{path}: no vertices found")
-        return cls(np.asarray(verts), np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=name)
+        v = np.asarray(verts, dtype=np.float64) * scale
+        return cls(v, np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=name, up_axis=up_axis)
 
     def to_obj(self, path: str | os.PathLike) -> None:
         """Write the mesh as a Wavefront OBJ file."""
@@ -298,15 +355,24 @@ class TriMesh:
     def from_usd(cls, path: str | os.PathLike, prim_path: str | None = None, time=None) -> "TriMesh":
         """Load a `UsdGeom.Mesh` (the first one found, or the one at ``prim_path``).
 
-        Points are taken at ``time`` (default: the default time) and transformed to world space;
-        polygons are fan-triangulated.
+        Points are taken at ``time`` (default: the default value, else the earliest time sample)
+        and transformed to world space; polygons are fan-triangulated. The mesh keeps the stage's
+        frame: its coordinates are scaled by the stage's ``metersPerUnit`` to metres (the
+        simulator's unit), and its `up_axis` is the stage's ``upAxis``, so a Z-up file falls
+        along -z (`ClothModel`'s default gravity) and is written back Z-up.
         """
-        from pxr import Usd, UsdGeom
+        from pxr import Sdf, Tf, Usd, UsdGeom
 
-        stage = Usd.Stage.Open(str(path))
+        try:
+            stage = Usd.Stage.Open(str(path))
+        except Tf.ErrorException as e:
+            first = str(e).strip().splitlines()[-1].strip() if str(e).strip() else "unreadable"
+            raise ValueError(f"{path}: cannot open USD stage ({first})") from None
         if stage is None:
             raise ValueError(f"{path}: cannot open USD stage")
         if prim_path is not None:
+            if not Sdf.Path.IsValidPathString(str(prim_path)):
+                raise ValueError(f"{path}: {prim_path!r} is not a prim path")
             prim = stage.GetPrimAtPath(prim_path)
             if not prim or not prim.IsA(UsdGeom.Mesh):
                 raise ValueError(f"{path}: no UsdGeom.Mesh at {prim_path}")
@@ -314,13 +380,31 @@ class TriMesh:
             prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)), None)
             if prim is None:
                 raise ValueError(f"{path}: no UsdGeom.Mesh in the stage")
+        up_axis = str(UsdGeom.GetStageUpAxis(stage))
+        if up_axis not in ("Y", "Z"):
+            raise ValueError(f"{path}: unsupported upAxis {up_axis!r}")
+        mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+        if not (math.isfinite(mpu) and mpu > 0):
+            raise ValueError(f"{path}: metersPerUnit must be positive, got {mpu}")
         mesh = UsdGeom.Mesh(prim)
-        t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
-        pts = np.asarray(mesh.GetPointsAttr().Get(t), dtype=np.float64)
+        if time is not None:
+            t = Usd.TimeCode(time)
+        elif mesh.GetPointsAttr().Get(Usd.TimeCode.Default()) is not None:
+            t = Usd.TimeCode.Default()
+        else:
+            t = Usd.TimeCode.EarliestTime()
+        raw_pts = mesh.GetPointsAttr().Get(t)
+        if raw_pts is None or mesh.GetFaceVertexCountsAttr().Get(t) is None:
+            raise ValueError(f"{path}: {prim.GetPath()} has no points or faces")
+        pts = np.asarray(raw_pts, dtype=np.float64).reshape(-1, 3)
         counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(t), dtype=np.int64)
         idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(t), dtype=np.int64)
+        if counts.sum() != len(idx):
+            raise ValueError(f"{path}: {prim.GetPath()} has {len(idx)} face vertex indices, its "
+                             f"face counts add up to {int(counts.sum())}")
         xf = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(t), dtype=np.float64)
         pts = pts @ xf[:3, :3] + xf[3, :3]  # USD matrices act on row vectors
+        pts *= mpu
         tris, o = [], 0
         for c in counts:
             if c < 3:
@@ -328,4 +412,5 @@ class TriMesh:
             for q in range(1, c - 1):
                 tris.append((idx[o], idx[o + q], idx[o + q + 1]))
             o += c
-        return cls(pts, np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=prim.GetName())
+        return cls(pts, np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=prim.GetName(),
+                   up_axis=up_axis)

@@ -33,6 +33,9 @@ DEFAULT_DENSITY = 0.15
 #: of resolution. Keeps the hanging 1 m sheet's stretch at a few tenths of a percent.
 DEFAULT_STRETCH_STIFFNESS = 1000.0
 
+#: m/s^2, down the mesh's up axis unless ``gravity`` is given
+STANDARD_GRAVITY = 9.81
+
 BENDING_MODELS = ("none", "springs", "dihedral", "quadratic")
 
 
@@ -130,8 +133,11 @@ class ClothModel:
             methods damp numerically).
         pins: vertex indices held fixed (inverse mass 0).
         pin_path: optional `PinPath` the pins follow; without it they stay at their rest positions.
-        gravity: m/s^2.
-        damping: velocity damping rate in 1/s, ``v <- v exp(-damping dt)`` every step.
+        gravity: m/s^2, a 3-vector; default ``None``: 9.81 m/s^2 down the mesh's up axis
+            (``mesh.up_axis``: -y for a Y-up mesh, -z for a Z-up one such as a Z-up USD file).
+        damping: velocity damping rate in 1/s, ``v <- v exp(-damping dt)`` every step. The
+            library default is 0 (undamped: exact energy tests); the built-in scenes and the CLI
+            use 0.1 1/s.
         wind: optional `warp_cloth.forces.wind.Wind`.
         velocity: optional initial velocity, (3,) or (N, 3), m/s.
         positions: optional initial positions (N, 3), m (default: the mesh's vertices, which
@@ -152,7 +158,7 @@ class ClothModel:
         spring_damping: float = 0.0,
         pins=(),
         pin_path: PinPath | None = None,
-        gravity=(0.0, -9.81, 0.0),
+        gravity=None,
         damping: float = 0.0,
         wind=None,
         velocity=None,
@@ -237,7 +243,14 @@ class ClothModel:
         self.num_stretch_springs = len(mesh.edges)  # the first springs are the mesh edges
 
         # ---- global parameters
-        g = np.asarray(gravity, dtype=np.float64).reshape(-1)
+        #: the mesh's up axis ("Y" or "Z") and its index: heights in RunStats, the output frame
+        self.up_axis = mesh.up_axis
+        self.up_index = 1 if mesh.up_axis == "Y" else 2
+        if gravity is None:
+            g = np.zeros(3)
+            g[self.up_index] = -STANDARD_GRAVITY
+        else:
+            g = np.asarray(gravity, dtype=np.float64).reshape(-1)
         if g.shape != (3,) or not np.all(np.isfinite(g)):
             raise ValueError(f"gravity must be 3 finite numbers, got {gravity}")
         self.gravity = tuple(float(c) for c in g)

@@ -43,7 +43,7 @@ class RunStats:
     ms_per_substep: float
     max_strain: float  # largest mesh-edge stretch l/L - 1 over all frames (compression not counted)
     final_max_strain: float
-    min_height: float  # along the up axis (y), over all frames
+    min_height: float  # along the model's up axis (mesh.up_axis: y or z), over all frames
     max_height: float
     energy_initial: float
     energy_final: float
@@ -162,11 +162,11 @@ class Scene:
         writer = None
         mesh_path = None
         if out is not None:
-            writer = UsdWriter(out, fps=self.fps)
+            writer = UsdWriter(out, fps=self.fps, up_axis=model.up_axis)
             mesh_path = writer.add_mesh(model.mesh.name, model.mesh.triangles)
             for ob in self.obstacles:
                 writer.add_obstacle(ob)
-        up = 1  # y up
+        up = model.up_index  # heights along the mesh's up axis
         graph = None
         wall = 0.0
         first = 0.0
