@@ -6,7 +6,9 @@
     warp-cloth check FILE.usd [--prim PATH --json]
     warp-cloth info
 
-Bad options and values give a usage error (exit status 2), never a traceback.
+Bad options and values give a usage error (exit status 2), never a traceback. Exit statuses of
+``run``: 0 done, 2 usage error, 3 diverged, 4 the output cannot be written (one-line message),
+130 interrupted (SIGINT, Ctrl-C), 143 terminated (SIGTERM); the file then holds the frames done.
 """
 
 from __future__ import annotations
@@ -15,7 +17,10 @@ import argparse
 import importlib
 import json
 import os
+import signal
 import sys
+import threading
+import warnings
 
 from .util import quiet_warp
 
@@ -27,7 +32,7 @@ CONTACT_SCENES = ["drape", "table", "spin", "mesh", "thin", "fold", "stack"]
 SCENE_SOLVERS = {"fold": "implicit", "twist": "implicit", "stack": "implicit"}
 CONTACT_OPTIONS = ["friction", "restitution", "thickness"]
 BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability", "ccd",
-               "selfcollision"]
+               "selfcollision", "usd"]
 
 # option -> (solver option name, solvers that accept it)
 SOLVER_OPTIONS = {
@@ -37,6 +42,23 @@ SOLVER_OPTIONS = {
     "gauss_seidel": ("gauss_seidel", ("pbd",)),
     "compliance": ("compliance", ("pbd",)),
 }
+
+
+#: exit statuses of ``run`` (besides 0 and argparse's 2)
+EXIT_DIVERGED, EXIT_OUTPUT, EXIT_SIGINT, EXIT_SIGTERM = 3, 4, 130, 143
+
+
+class _Terminated(Exception):
+    """Raised in the main thread by the SIGTERM handler, so the run finishes like on Ctrl-C."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated()
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings during a run as one line, without Python's source location."""
+    print(f"warp-cloth: warning: {message}", file=sys.stderr)
 
 
 def _positive_int(s):
@@ -127,6 +149,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="contact scenes: normal restitution mu_N in [0, 1]")
     r.add_argument("--thickness", type=_positive_float, default=None,
                    help="contact scenes: contact thickness in m")
+    r.add_argument("--save-interval", type=_nonneg_float, default=2.0, metavar="SECONDS",
+                   help="wall time between saves of the output (default 2; 0: every frame); a "
+                        "crash loses at most the frames since the last save")
     r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0")
     r.add_argument("--quiet", action="store_true", help="no progress bar or Warp messages")
     r.add_argument("--json", action="store_true", help="print the run statistics as JSON")
@@ -206,14 +231,30 @@ def cmd_run(args, parser) -> int:
         scene = build_scene(args.scene, **kw)
     except (ValueError, TypeError, RuntimeError) as e:
         parser.error(str(e))
+    from .errors import OutputError
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
     try:
-        stats = scene.run(out, quiet=args.quiet)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            stats = scene.run(out, quiet=args.quiet, save_interval=args.save_interval)
     except SimulationDiverged as e:
         print(f"warp-cloth: {e}; {out} holds the frames before it", file=sys.stderr)
-        return 3
+        return EXIT_DIVERGED
     except KeyboardInterrupt:
         print(f"\nwarp-cloth: interrupted; {out} holds the frames done so far", file=sys.stderr)
-        return 130
+        return EXIT_SIGINT
+    except _Terminated:
+        print(f"\nwarp-cloth: terminated (SIGTERM); {out} holds the frames done so far",
+              file=sys.stderr)
+        return EXIT_SIGTERM
+    except OutputError as e:
+        print(f"warp-cloth: {e}", file=sys.stderr)
+        return EXIT_OUTPUT
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
     if args.json:
         print(json.dumps(stats.as_dict(), indent=2, default=str))
     else:

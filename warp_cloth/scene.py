@@ -143,8 +143,13 @@ class Scene:
         self.state = self.model.state()
 
     def run(self, out: str | os.PathLike | None = None, *, quiet: bool = False,
-            progress: bool | None = None, energy: bool = True, on_frame=None) -> RunStats:
+            progress: bool | None = None, energy: bool = True, on_frame=None,
+            save_interval: float = 2.0) -> RunStats:
         """Run from the initial state; write ``out`` (a ``.usd``) if given.
+
+        The file is saved every ``save_interval`` seconds of wall time (0: after every frame) and
+        when the run ends for any reason; it is readable at every moment (`warp_cloth.usd`).
+        An unwritable ``out`` raises `warp_cloth.usd.OutputError`.
 
         Raises `SimulationDiverged` when a frame has a non-finite position or an edge strain above
         ``strain_bound``; the USD file then holds the frames before it. ``on_frame(frame, state)``
@@ -162,7 +167,8 @@ class Scene:
         writer = None
         mesh_path = None
         if out is not None:
-            writer = UsdWriter(out, fps=self.fps, up_axis=model.up_axis)
+            writer = UsdWriter(out, fps=self.fps, up_axis=model.up_axis,
+                               save_interval=save_interval)
             mesh_path = writer.add_mesh(model.mesh.name, model.mesh.triangles)
             for ob in self.obstacles:
                 writer.add_obstacle(ob)
