@@ -40,6 +40,59 @@ def _positive_finite(x, what: str) -> float:
     return v
 
 
+#: largest finite float32: the device arrays' type
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def _describe(x) -> str:
+    r = repr(x)
+    return f"{type(x).__name__} {r[:40] + '...' if len(r) > 40 else r}"
+
+
+def _number_array(x, what: str, expect: str) -> np.ndarray:
+    """``x`` as a float64 array, or `ValueError` saying ``what`` must be ``expect``."""
+    if x is None or isinstance(x, (str, bytes)):
+        raise ValueError(f"{what} must be {expect}, got {_describe(x)}")
+    try:
+        with np.errstate(all="ignore"):
+            a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{what} must be {expect}, got {_describe(x)}") from None
+    return a
+
+
+def index_array(x, what: str, kind: str = "vertex") -> np.ndarray:
+    """``x`` as an int64 array of indices: integers, or floats with integral values. Booleans,
+    strings, fractions, non-finite or huge values raise `ValueError` naming ``what``."""
+    if x is None or isinstance(x, (str, bytes)):
+        raise ValueError(f"{what} must be {kind} indices (integers), got {_describe(x)}")
+    try:
+        a = np.asarray(x)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{what} must be {kind} indices (integers), got {_describe(x)}") from None
+    if a.dtype.kind == "O":
+        try:
+            a = np.asarray(a.tolist(), dtype=np.float64)
+        except (TypeError, ValueError, OverflowError):
+            raise ValueError(f"{what} must be {kind} indices (integers), got "
+                             f"{_describe(x)}") from None
+    if a.dtype.kind == "b" or a.dtype.kind not in "iuf":
+        raise ValueError(f"{what} must be {kind} indices (integers), got an array of "
+                         f"{'booleans' if a.dtype.kind == 'b' else a.dtype}")
+    if a.dtype.kind == "f":
+        with np.errstate(all="ignore"):
+            bad = ~np.isfinite(a) | (a != np.round(a))
+        if bad.any():
+            k = np.unravel_index(int(np.argmax(bad)), a.shape)
+            raise ValueError(f"{what}: entry {list(map(int, k))} is {float(a[k])!r}, not an integer "
+                             f"{kind} index")
+    big = np.abs(a.astype(np.float64)) > 2.0**62
+    if big.any():
+        k = np.unravel_index(int(np.argmax(big)), a.shape)
+        raise ValueError(f"{what}: {kind} index {a[k]:.4g} at {list(map(int, k))} is out of range")
+    return a.astype(np.int64)
+
+
 def check_up_axis(up_axis, where: str = "up_axis") -> str:
     """``"Y"`` or ``"Z"`` (either case accepted); anything else raises `ValueError`."""
     a = up_axis.upper() if isinstance(up_axis, str) else None
@@ -95,20 +148,29 @@ class TriMesh:
     bend_quads: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
+        if not isinstance(self.name, str):
+            raise ValueError(f"name must be a string, got {type(self.name).__name__}")
         self.up_axis = check_up_axis(self.up_axis, self.name)
-        v = np.asarray(self.vertices, dtype=np.float64)
-        t = np.asarray(self.triangles)
+        v = _number_array(self.vertices, f"{self.name}: vertices", "an (N, 3) array of numbers")
         if v.ndim != 2 or v.shape[1] != 3:
             raise ValueError(f"{self.name}: vertices must have shape (N, 3), got {v.shape}")
+        t = index_array(self.triangles, f"{self.name}: triangles", "vertex")
         if t.ndim != 2 or t.shape[1] != 3:
             raise ValueError(f"{self.name}: triangles must have shape (M, 3), got {t.shape}")
         if len(t) == 0:
             raise ValueError(f"{self.name}: mesh has no triangles")
-        if not np.issubdtype(t.dtype, np.integer):
-            if not np.all(np.isfinite(t)) or np.any(t != np.round(t)):
-                raise ValueError(f"{self.name}: triangle indices must be integers")
+        if self.grid_shape is not None:
+            try:
+                nx, ny = (int(c) for c in self.grid_shape)
+            except (TypeError, ValueError):
+                raise ValueError(f"{self.name}: grid_shape must be (nx, ny), got "
+                                 f"{self.grid_shape!r}") from None
+            if nx < 1 or ny < 1 or (nx + 1) * (ny + 1) != len(v):
+                raise ValueError(f"{self.name}: grid_shape {self.grid_shape} does not match "
+                                 f"{len(v)} vertices")
+            self.grid_shape = (nx, ny)
         self.vertices = v
-        self.triangles = t.astype(np.int64)
+        self.triangles = t
         self.validate()
         self._build_topology()
 
@@ -120,6 +182,11 @@ class TriMesh:
         if len(bad):
             i = int(bad[0, 0])
             raise ValueError(f"{self.name}: vertex {i} has a non-finite coordinate {v[i].tolist()}")
+        bad = np.argwhere(np.abs(v) > FLOAT32_MAX)
+        if len(bad):
+            i = int(bad[0, 0])
+            raise ValueError(f"{self.name}: vertex {i} has a coordinate beyond the float32 range "
+                             f"(+-{FLOAT32_MAX:.3g} m) of the simulation: {v[i].tolist()}")
         bad = np.argwhere((t < 0) | (t >= n))
         if len(bad):
             k, c = (int(x) for x in bad[0])
@@ -131,13 +198,18 @@ class TriMesh:
         if rep.any():
             k = int(np.argmax(rep))
             raise ValueError(f"{self.name}: triangle {k} repeats a vertex {t[k].tolist()}")
+        # relative to each triangle's own size: a 1e30 m triangle is not "zero area", nor is a
+        # small one in a large mesh
         area = self.triangle_areas()
-        scale = max(float(np.ptp(v, axis=0).max()), 1e-30)
-        tiny = area <= 1e-12 * scale * scale
+        x0, x1, x2 = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+        longest2 = np.maximum.reduce([((x1 - x0) ** 2).sum(1), ((x2 - x1) ** 2).sum(1),
+                                      ((x0 - x2) ** 2).sum(1)])
+        tiny = area <= 1e-12 * longest2
         if tiny.any():
             k = int(np.argmax(tiny))
             raise ValueError(
-                f"{self.name}: triangle {k} {t[k].tolist()} has zero area ({area[k]:.3g} m^2)"
+                f"{self.name}: triangle {k} {t[k].tolist()} has zero area ({area[k]:.3g} m^2 for "
+                f"a longest side of {np.sqrt(longest2[k]):.3g} m: its vertices are collinear)"
             )
         key = np.sort(t, axis=1)
         _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
