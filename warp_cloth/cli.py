@@ -22,7 +22,7 @@ import sys
 import threading
 import warnings
 
-from .util import quiet_warp
+from .util import init_warp
 
 SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh", "thin", "fold", "twist",
                "stack"]
@@ -153,7 +153,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="wall time between saves of the output (default 2; 0: every frame); a "
                         "crash loses at most the frames since the last save")
     r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0")
-    r.add_argument("--quiet", action="store_true", help="no progress bar or Warp messages")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--verbose", action="store_true",
+                   help="Warp's own messages: start-up, module loads, a missing CUDA driver")
     r.add_argument("--json", action="store_true", help="print the run statistics as JSON")
 
     b = sub.add_parser("bench", help="benchmarks: warp-cloth bench NAME --help",
@@ -186,10 +188,7 @@ def _corrections(args):
 
 
 def cmd_run(args, parser) -> int:
-    import warp as wp
-
-    if args.quiet:
-        quiet_warp()
+    init_warp(verbose=args.verbose, device=args.device)
     from .errors import SimulationDiverged
     from .scenes import build_scene
 
@@ -263,6 +262,8 @@ def cmd_run(args, parser) -> int:
 
 
 def cmd_bench(args, parser) -> int:
+    dev = args.args[args.args.index("--device") + 1] if "--device" in args.args[:-1] else None
+    init_warp(verbose="--verbose" in args.args, device=dev)
     try:
         mod = importlib.import_module(f"warp_cloth.bench.{args.name}")
     except ImportError:
@@ -276,8 +277,7 @@ def cmd_info() -> int:
     from . import __version__
     from .solvers import available
 
-    quiet_warp()
-    wp.init()
+    init_warp()
     print(f"warp_cloth {__version__}")
     print(f"warp {wp.__version__}")
     try:
@@ -288,6 +288,8 @@ def cmd_info() -> int:
         print("usd: not installed")
     print(f"python {sys.version.split()[0]}")
     print("devices: " + ", ".join(f"{d.alias} ({d.name})" for d in wp.get_devices()))
+    if not wp.is_cuda_available():
+        print("cuda: not available (no NVIDIA driver found; --verbose shows Warp's message)")
     print("solvers: " + ", ".join(available()))
     print(f"kernel cache: {wp.config.kernel_cache_dir}")
     return 0
@@ -300,9 +302,7 @@ def cmd_check(args, parser) -> int:
 
     import numpy as np
 
-    from .util import quiet_warp
-
-    quiet_warp()
+    init_warp()
     path = args.file
     if not os.path.isfile(path):
         parser.error(f"check: no such file: {path}")
