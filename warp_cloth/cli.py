@@ -263,7 +263,7 @@ def cmd_run(args, parser) -> int:
 
 def cmd_bench(args, parser) -> int:
     dev = args.args[args.args.index("--device") + 1] if "--device" in args.args[:-1] else None
-    init_warp(verbose="--verbose" in args.args, device=dev)
+    init_warp(device=dev)  # quiet; a CUDA --device still shows why CUDA is missing
     try:
         mod = importlib.import_module(f"warp_cloth.bench.{args.name}")
     except ImportError:
@@ -289,7 +289,7 @@ def cmd_info() -> int:
     print(f"python {sys.version.split()[0]}")
     print("devices: " + ", ".join(f"{d.alias} ({d.name})" for d in wp.get_devices()))
     if not wp.is_cuda_available():
-        print("cuda: not available (no NVIDIA driver found; --verbose shows Warp's message)")
+        print("cuda: not available (no NVIDIA CUDA driver found)")
     print("solvers: " + ", ".join(available()))
     print(f"kernel cache: {wp.config.kernel_cache_dir}")
     return 0

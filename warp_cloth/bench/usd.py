@@ -4,10 +4,16 @@ Two measurements of `warp_cloth.usd.UsdWriter` (no simulation: synthetic frames 
 
 - ``--cost`` (default): a grid of about ``--vertices`` vertices (default 65,536), ``--frames``
   frames (default 2,000) with a save after every frame (the worst case; the default CLI saves
-  every 2 s). Prints the median milliseconds per frame (write + save) over frames 100-199 and
-  over the last 100 frames, their ratio (flat cost: about 1), and the bytes on disk::
+  every 2 s). Prints the median milliseconds per frame (authoring + save) over frames 100-199
+  and over the last 100 frames, their ratio (flat cost: about 1), the same for the save alone
+  and for the root's rewrite within it (its clip list grows by one entry, about 46 bytes, a
+  save), and the bytes on disk::
 
-      cost: vertices=N frames=F early_ms=A late_ms=B ratio=B/A root_bytes=R total_mb=M
+      cost: vertices=N frames=F early_ms=A late_ms=B ratio=B/A save_early_ms=.. save_late_ms=..
+            root_early_ms=.. root_late_ms=.. root_bytes=R total_mb=M
+
+  On a shared machine other processes' load moves these medians by tens of percent between the
+  start and the end of a run; the save's parts show what, if anything, grows.
 
 - ``--kill N``: N times, starts a writer process (a child of this command) saving every frame,
   waits until the output folder changes on disk (a save is writing) plus a random delay of up to
@@ -133,27 +139,46 @@ def kill_once(out: str, sig: int, *, vertices: int = 400, max_delay: float = 0.3
 
 
 def measure_cost(out: str, vertices: int = 65536, frames: int = 2000, echo=print) -> dict:
-    """Write ``frames`` frames of a ``vertices`` grid, saving after each; per-frame times."""
+    """Write ``frames`` frames of a ``vertices`` grid, saving after each; medians of the
+    per-frame times (frames 100-199 and the last 100) of the frame's authoring, its save, and
+    the root's rewrite within the save."""
     from ..usd import UsdWriter
 
     pts, tris = _grid(vertices)
-    w = UsdWriter(out, fps=60, save_interval=0.0)
+    w = UsdWriter(out, fps=60, save_interval=float("inf"))
     mesh = w.add_mesh("cloth", tris)
-    ms = []
+    write_ms, save_ms, root_ms = [], [], []
+    write_root = w._write_root
+
+    def timed_root(*a, **k):  # the only part of a save that grows with the run
+        t = time.perf_counter()
+        write_root(*a, **k)
+        root_ms.append(1e3 * (time.perf_counter() - t))
+
+    w._write_root = timed_root
     for f in range(frames):
         t0 = time.perf_counter()
         w.write_frame(f, {mesh: pts + np.float32(0.001 * f)})
-        ms.append(1e3 * (time.perf_counter() - t0))
-        if echo and (f + 1) % 250 == 0:
-            echo(f"  frame {f + 1}: {ms[-1]:.1f} ms (median of the last 100: "
-                 f"{statistics.median(ms[-100:]):.1f} ms)")
+        t1 = time.perf_counter()
+        w.save()
+        t2 = time.perf_counter()
+        write_ms.append(1e3 * (t1 - t0))
+        save_ms.append(1e3 * (t2 - t1))
+        if echo and (f + 1) % 500 == 0:
+            echo(f"  frame {f + 1}: write+save {statistics.median(write_ms[-100:]):.1f} + "
+                 f"{statistics.median(save_ms[-100:]):.1f} ms (medians of the last 100)")
     w.close()
-    early = statistics.median(ms[100:200]) if frames >= 200 else statistics.median(ms)
-    late = statistics.median(ms[-100:])
+    early, late = slice(100, 200) if frames >= 200 else slice(0, frames), slice(-100, None)
+    med = statistics.median
+    total = [a + b for a, b in zip(write_ms, save_ms)]
     folder = out + ".frames"
-    total = os.path.getsize(out) + sum(e.stat().st_size for e in os.scandir(folder))
-    return {"vertices": len(pts), "frames": frames, "early_ms": early, "late_ms": late,
-            "ratio": late / early, "root_bytes": os.path.getsize(out), "total_mb": total / 1e6}
+    size = os.path.getsize(out) + sum(e.stat().st_size for e in os.scandir(folder))
+    return {"vertices": len(pts), "frames": frames,
+            "early_ms": med(total[early]), "late_ms": med(total[late]),
+            "ratio": med(total[late]) / med(total[early]),
+            "save_early_ms": med(save_ms[early]), "save_late_ms": med(save_ms[late]),
+            "root_early_ms": med(root_ms[early]), "root_late_ms": med(root_ms[late]),
+            "root_bytes": os.path.getsize(out), "total_mb": size / 1e6}
 
 
 def main(argv=None) -> int:
