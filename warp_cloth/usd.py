@@ -58,17 +58,28 @@ def frames_dir(path) -> str:
 
 @contextlib.contextmanager
 def _signals_held():
-    """Hold SIGINT/SIGTERM back (they stay pending) while a save moves its files."""
-    if threading.current_thread() is not threading.main_thread() or not hasattr(
-            signal, "pthread_sigmask"):
+    """Hold SIGINT/SIGTERM back while a save moves its files: their Python handlers are
+    swapped for a recorder and the signals raised again, to the previous handlers, afterwards.
+
+    (Blocking them with ``pthread_sigmask`` is not enough: USD's worker threads would take a
+    process-directed signal and Python would run the handler in the middle of the save.)"""
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    sigs = {signal.SIGINT, signal.SIGTERM}
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    pending = []
+    old = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            old[sig] = signal.signal(sig, lambda signum, frame: pending.append(signum))
+        except (ValueError, OSError):  # not settable here
+            pass
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        for sig in dict.fromkeys(pending):
+            signal.raise_signal(sig)
 
 
 def _one_line(e: BaseException) -> str:
