@@ -122,3 +122,10 @@ def test_z_up_grid_written_z_up(tmp_path):
     stage = Usd.Stage.Open(str(out))
     assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
     assert stats.max_height == pytest.approx(1.0) and stats.min_height < 1.0 - 1e-3
+
+
+def test_from_usd_on_a_file_that_is_not_usd(tmp_path):
+    p = tmp_path / "junk.usda"
+    p.write_text("#usda 1.0\n(((( not usd")
+    with pytest.raises(ValueError, match=r"junk.usda: cannot open USD stage"):
+        wc.TriMesh.from_usd(p)

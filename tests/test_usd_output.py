@@ -215,3 +215,17 @@ def test_signals_wait_for_a_save_in_progress():
         assert seen == ["save done", "handler"]
     finally:
         signal.signal(signal.SIGTERM, old)
+
+
+def test_read_only_file_system_is_one_line_error():
+    d = tempfile.mkdtemp()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", d], capture_output=True)
+    if r.returncode != 0:
+        os.rmdir(d)
+        pytest.skip("cannot mount a read-only tmpfs here")
+    try:
+        with pytest.raises(OutputError, match=r"cannot write .*: Read-only file system"):
+            UsdWriter(os.path.join(d, "ro.usd"))
+    finally:
+        subprocess.run(["umount", d])
+        os.rmdir(d)
