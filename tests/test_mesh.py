@@ -136,6 +136,7 @@ def test_usd_round_trip(tmp_path):
     assert np.array_equal(r.triangles, m.triangles)
     # a quad mesh with a transform: fan-triangulated, points in world space
     stage = Usd.Stage.CreateNew(str(tmp_path / "quad.usda"))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)  # unauthored, USD's fallback is 0.01 (cm)
     xf = UsdGeom.Xform.Define(stage, "/X")
     xf.AddTranslateOp().Set(Gf.Vec3d(0, 2, 0))
     q = UsdGeom.Mesh.Define(stage, "/X/Q")

@@ -11,7 +11,7 @@ Quick start::
     print(scene.run("hanging.usd").summary())
 """
 
-from .errors import SimulationDiverged
+from .errors import OutputError, SimulationDiverged
 from .mesh import TriMesh
 from .model import ClothModel, PinPath, State
 from .scene import RunStats, Scene
@@ -19,7 +19,32 @@ from .solvers import make_solver
 
 __version__ = "0.1.0"
 
+#: names importable from ``warp_cloth`` whose modules load on first use (PEP 562), so that
+#: ``import warp_cloth`` stays light: limits, wind, obstacles and contact, USD output
+_LAZY = {
+    "StrainLimit": "limits", "AreaLimit": "limits",
+    "Wind": "forces.wind",
+    "CollisionStage": "collision", "ObstacleContact": "collision", "Plane": "collision",
+    "Sphere": "collision", "Box": "collision", "MeshObstacle": "collision",
+    "Motion": "collision", "KeyframePath": "collision",
+    "UsdWriter": "usd", "read_points": "usd",
+}
+
 __all__ = [
     "TriMesh", "ClothModel", "State", "PinPath", "Scene", "RunStats", "SimulationDiverged",
-    "make_solver", "__version__",
+    "OutputError", "make_solver", "__version__", *_LAZY,
 ]
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'warp_cloth' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

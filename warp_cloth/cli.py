@@ -8,7 +8,9 @@
     warp-cloth render FILE.usd --out X.png|X.gif [--frames A:B:STEP --size WxH --camera AZ,EL[,D]]
     warp-cloth info
 
-Bad options and values give a usage error (exit status 2), never a traceback.
+Bad options and values give a usage error (exit status 2), never a traceback. Exit statuses of
+``run``: 0 done, 2 usage error, 3 diverged, 4 the output cannot be written (one-line message),
+5 the cloth passed through itself (``--check-intersections``), 130 interrupted (SIGINT, Ctrl-C), 143 terminated (SIGTERM); the file then holds the frames done.
 """
 
 from __future__ import annotations
@@ -17,9 +19,12 @@ import argparse
 import importlib
 import json
 import os
+import signal
 import sys
+import threading
+import warnings
 
-from .util import quiet_warp
+from .util import init_warp
 
 SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh", "thin", "fold", "twist",
                "stack"]
@@ -29,7 +34,7 @@ CONTACT_SCENES = ["drape", "table", "spin", "mesh", "thin", "fold", "stack"]
 SCENE_SOLVERS = {"fold": "implicit", "twist": "implicit", "stack": "implicit"}
 CONTACT_OPTIONS = ["friction", "restitution", "thickness"]
 BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability", "ccd",
-               "selfcollision", "render"]
+               "selfcollision", "render", "usd"]
 
 # option -> (solver option name, solvers that accept it)
 SOLVER_OPTIONS = {
@@ -39,6 +44,23 @@ SOLVER_OPTIONS = {
     "gauss_seidel": ("gauss_seidel", ("pbd",)),
     "compliance": ("compliance", ("pbd",)),
 }
+
+
+#: exit statuses of ``run`` (besides 0 and argparse's 2)
+EXIT_DIVERGED, EXIT_OUTPUT, EXIT_CROSSINGS, EXIT_SIGINT, EXIT_SIGTERM = 3, 4, 5, 130, 143
+
+
+class _Terminated(Exception):
+    """Raised in the main thread by the SIGTERM handler, so the run finishes like on Ctrl-C."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated()
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings during a run as one line, without Python's source location."""
+    print(f"warp-cloth: warning: {message}", file=sys.stderr)
 
 
 def _positive_int(s):
@@ -129,8 +151,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="contact scenes: normal restitution mu_N in [0, 1]")
     r.add_argument("--thickness", type=_positive_float, default=None,
                    help="contact scenes: contact thickness in m")
+    r.add_argument("--save-interval", type=_nonneg_float, default=2.0, metavar="SECONDS",
+                   help="wall time between saves of the output (default 2; 0: every frame); a "
+                        "crash loses at most the frames since the last save")
     r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0")
-    r.add_argument("--quiet", action="store_true", help="no progress bar or Warp messages")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--verbose", action="store_true",
+                   help="Warp's own messages: start-up, module loads, a missing CUDA driver")
     r.add_argument("--json", action="store_true", help="print the run statistics as JSON")
     r.add_argument("--self-collision", choices=["on", "off"], default=None,
                    help="keep the cloth from passing through itself (default: on for fold, "
@@ -196,10 +223,7 @@ def _corrections(args):
 
 
 def cmd_run(args, parser) -> int:
-    import warp as wp
-
-    if args.quiet:
-        quiet_warp()
+    init_warp(verbose=args.verbose, device=args.device)
     from .errors import SimulationDiverged
     from .scenes import build_scene
 
@@ -243,16 +267,33 @@ def cmd_run(args, parser) -> int:
         scene = build_scene(args.scene, **kw)
     except (ValueError, TypeError, RuntimeError) as e:
         parser.error(str(e))
+    from .errors import OutputError
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
     try:
-        stats = scene.run(out, quiet=args.quiet, check_intersections=args.check_intersections)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            stats = scene.run(out, quiet=args.quiet, save_interval=args.save_interval,
+                              check_intersections=args.check_intersections)
     except SimulationDiverged as e:
         print(f"warp-cloth: {e}; {out} holds the frames before it", file=sys.stderr)
         if args.preview and os.path.isfile(out):
             _write_preview(out, args.device)
-        return 3
+        return EXIT_DIVERGED
     except KeyboardInterrupt:
         print(f"\nwarp-cloth: interrupted; {out} holds the frames done so far", file=sys.stderr)
-        return 130
+        return EXIT_SIGINT
+    except _Terminated:
+        print(f"\nwarp-cloth: terminated (SIGTERM); {out} holds the frames done so far",
+              file=sys.stderr)
+        return EXIT_SIGTERM
+    except OutputError as e:
+        print(f"warp-cloth: {e}", file=sys.stderr)
+        return EXIT_OUTPUT
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
     if args.json:
         print(json.dumps(stats.as_dict(), indent=2, default=str))
     else:
@@ -262,11 +303,13 @@ def cmd_run(args, parser) -> int:
     if stats.crossing_frames:
         print(f"warp-cloth: the cloth passes through itself in {stats.crossing_frames} frames",
               file=sys.stderr)
-        return 5
+        return EXIT_CROSSINGS
     return 0
 
 
 def cmd_bench(args, parser) -> int:
+    dev = args.args[args.args.index("--device") + 1] if "--device" in args.args[:-1] else None
+    init_warp(device=dev)  # quiet; a CUDA --device still shows why CUDA is missing
     try:
         mod = importlib.import_module(f"warp_cloth.bench.{args.name}")
     except ImportError:
@@ -280,8 +323,7 @@ def cmd_info() -> int:
     from . import __version__
     from .solvers import available
 
-    quiet_warp()
-    wp.init()
+    init_warp()
     print(f"warp_cloth {__version__}")
     print(f"warp {wp.__version__}")
     try:
@@ -292,6 +334,8 @@ def cmd_info() -> int:
         print("usd: not installed")
     print(f"python {sys.version.split()[0]}")
     print("devices: " + ", ".join(f"{d.alias} ({d.name})" for d in wp.get_devices()))
+    if not wp.is_cuda_available():
+        print("cuda: not available (no NVIDIA CUDA driver found)")
     print("solvers: " + ", ".join(available()))
     print(f"kernel cache: {wp.config.kernel_cache_dir}")
     return 0
@@ -304,9 +348,7 @@ def cmd_check(args, parser) -> int:
 
     import numpy as np
 
-    from .util import quiet_warp
-
-    quiet_warp()
+    init_warp()
     path = args.file
     if not os.path.isfile(path):
         parser.error(f"check: no such file: {path}")

@@ -20,3 +20,9 @@ class SimulationDiverged(RuntimeError):
             f"simulation diverged at frame {frame} with method '{method}': {reason} "
             f"(largest edge strain seen {max_strain:.4g})"
         )
+
+
+class OutputError(OSError):
+    """An output file cannot be written (permissions, a directory, a read-only or full file
+    system). The message is one line naming the path and the reason; files already written
+    stay readable."""

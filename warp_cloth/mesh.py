@@ -25,7 +25,80 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["TriMesh", "edge_triples"]
+__all__ = ["TriMesh", "edge_triples", "check_up_axis"]
+
+UP_AXES = ("Y", "Z")
+
+
+def _positive_finite(x, what: str) -> float:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a positive number, got {x!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{what} must be positive and finite, got {x!r}")
+    return v
+
+
+#: largest finite float32: the device arrays' type
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def _describe(x) -> str:
+    r = repr(x)
+    return f"{type(x).__name__} {r[:40] + '...' if len(r) > 40 else r}"
+
+
+def _number_array(x, what: str, expect: str) -> np.ndarray:
+    """``x`` as a float64 array, or `ValueError` saying ``what`` must be ``expect``."""
+    if x is None or isinstance(x, (str, bytes)):
+        raise ValueError(f"{what} must be {expect}, got {_describe(x)}")
+    try:
+        with np.errstate(all="ignore"):
+            a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{what} must be {expect}, got {_describe(x)}") from None
+    return a
+
+
+def index_array(x, what: str, kind: str = "vertex") -> np.ndarray:
+    """``x`` as an int64 array of indices: integers, or floats with integral values. Booleans,
+    strings, fractions, non-finite or huge values raise `ValueError` naming ``what``."""
+    if x is None or isinstance(x, (str, bytes)):
+        raise ValueError(f"{what} must be {kind} indices (integers), got {_describe(x)}")
+    try:
+        a = np.asarray(x)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{what} must be {kind} indices (integers), got {_describe(x)}") from None
+    if a.dtype.kind == "O":
+        try:
+            a = np.asarray(a.tolist(), dtype=np.float64)
+        except (TypeError, ValueError, OverflowError):
+            raise ValueError(f"{what} must be {kind} indices (integers), got "
+                             f"{_describe(x)}") from None
+    if a.dtype.kind == "b" or a.dtype.kind not in "iuf":
+        raise ValueError(f"{what} must be {kind} indices (integers), got an array of "
+                         f"{'booleans' if a.dtype.kind == 'b' else a.dtype}")
+    if a.dtype.kind == "f":
+        with np.errstate(all="ignore"):
+            bad = ~np.isfinite(a) | (a != np.round(a))
+        if bad.any():
+            k = np.unravel_index(int(np.argmax(bad)), a.shape)
+            raise ValueError(f"{what}: entry {list(map(int, k))} is {float(a[k])!r}, not an integer "
+                             f"{kind} index")
+    big = np.abs(a.astype(np.float64)) > 2.0**62
+    if big.any():
+        k = np.unravel_index(int(np.argmax(big)), a.shape)
+        raise ValueError(f"{what}: {kind} index {a[k]:.4g} at {list(map(int, k))} is out of range")
+    return a.astype(np.int64)
+
+
+def check_up_axis(up_axis, where: str = "up_axis") -> str:
+    """``"Y"`` or ``"Z"`` (either case accepted); anything else raises `ValueError`."""
+    a = up_axis.upper() if isinstance(up_axis, str) else None
+    if a not in UP_AXES:
+        raise ValueError(f"{where}: up_axis must be 'Y' or 'Z', got {up_axis!r}")
+    return a
 
 
 def edge_triples(triangles: np.ndarray) -> np.ndarray:
@@ -54,6 +127,10 @@ class TriMesh:
         grid_shape: ``(nx, ny)`` when the mesh is a structured grid made by `TriMesh.grid`
             (vertex ``j * (nx + 1) + i``); enables the structured shear/bending springs.
         name: a label used in error messages and as the USD prim name.
+        up_axis: ``"Y"`` or ``"Z"``: the axis that points up in the frame of ``vertices``.
+            `ClothModel`'s default gravity points down along it, `RunStats` heights are measured
+            along it and the output stage records it. Loaders set it from the file
+            (`from_usd`: the stage's ``upAxis``; `from_obj`: the ``up_axis`` argument).
 
     Raises:
         ValueError: on non-finite coordinates, out-of-range or negative indices, a repeated vertex
@@ -65,24 +142,35 @@ class TriMesh:
     triangles: np.ndarray
     grid_shape: tuple[int, int] | None = None
     name: str = "cloth"
+    up_axis: str = "Y"
     edges: np.ndarray = field(init=False, repr=False)
     edge_tris: np.ndarray = field(init=False, repr=False)
     bend_quads: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
-        v = np.asarray(self.vertices, dtype=np.float64)
-        t = np.asarray(self.triangles)
+        if not isinstance(self.name, str):
+            raise ValueError(f"name must be a string, got {type(self.name).__name__}")
+        self.up_axis = check_up_axis(self.up_axis, self.name)
+        v = _number_array(self.vertices, f"{self.name}: vertices", "an (N, 3) array of numbers")
         if v.ndim != 2 or v.shape[1] != 3:
             raise ValueError(f"{self.name}: vertices must have shape (N, 3), got {v.shape}")
+        t = index_array(self.triangles, f"{self.name}: triangles", "vertex")
         if t.ndim != 2 or t.shape[1] != 3:
             raise ValueError(f"{self.name}: triangles must have shape (M, 3), got {t.shape}")
         if len(t) == 0:
             raise ValueError(f"{self.name}: mesh has no triangles")
-        if not np.issubdtype(t.dtype, np.integer):
-            if not np.all(np.isfinite(t)) or np.any(t != np.round(t)):
-                raise ValueError(f"{self.name}: triangle indices must be integers")
+        if self.grid_shape is not None:
+            try:
+                nx, ny = (int(c) for c in self.grid_shape)
+            except (TypeError, ValueError):
+                raise ValueError(f"{self.name}: grid_shape must be (nx, ny), got "
+                                 f"{self.grid_shape!r}") from None
+            if nx < 1 or ny < 1 or (nx + 1) * (ny + 1) != len(v):
+                raise ValueError(f"{self.name}: grid_shape {self.grid_shape} does not match "
+                                 f"{len(v)} vertices")
+            self.grid_shape = (nx, ny)
         self.vertices = v
-        self.triangles = t.astype(np.int64)
+        self.triangles = t
         self.validate()
         self._build_topology()
 
@@ -94,6 +182,11 @@ class TriMesh:
         if len(bad):
             i = int(bad[0, 0])
             raise ValueError(f"{self.name}: vertex {i} has a non-finite coordinate {v[i].tolist()}")
+        bad = np.argwhere(np.abs(v) > FLOAT32_MAX)
+        if len(bad):
+            i = int(bad[0, 0])
+            raise ValueError(f"{self.name}: vertex {i} has a coordinate beyond the float32 range "
+                             f"(+-{FLOAT32_MAX:.3g} m) of the simulation: {v[i].tolist()}")
         bad = np.argwhere((t < 0) | (t >= n))
         if len(bad):
             k, c = (int(x) for x in bad[0])
@@ -105,13 +198,18 @@ class TriMesh:
         if rep.any():
             k = int(np.argmax(rep))
             raise ValueError(f"{self.name}: triangle {k} repeats a vertex {t[k].tolist()}")
+        # relative to each triangle's own size: a 1e30 m triangle is not "zero area", nor is a
+        # small one in a large mesh
         area = self.triangle_areas()
-        scale = max(float(np.ptp(v, axis=0).max()), 1e-30)
-        tiny = area <= 1e-12 * scale * scale
+        x0, x1, x2 = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+        longest2 = np.maximum.reduce([((x1 - x0) ** 2).sum(1), ((x2 - x1) ** 2).sum(1),
+                                      ((x0 - x2) ** 2).sum(1)])
+        tiny = area <= 1e-12 * longest2
         if tiny.any():
             k = int(np.argmax(tiny))
             raise ValueError(
-                f"{self.name}: triangle {k} {t[k].tolist()} has zero area ({area[k]:.3g} m^2)"
+                f"{self.name}: triangle {k} {t[k].tolist()} has zero area ({area[k]:.3g} m^2 for "
+                f"a longest side of {np.sqrt(longest2[k]):.3g} m: its vertices are collinear)"
             )
         key = np.sort(t, axis=1)
         _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
@@ -208,6 +306,7 @@ class TriMesh:
         origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
         diagonals: str = "alternating",
         name: str = "cloth",
+        up_axis: str = "Y",
     ) -> "TriMesh":
         """A rectangular sheet of ``nx`` x ``ny`` cells, two triangles per cell.
 
@@ -217,7 +316,8 @@ class TriMesh:
 
         ``diagonals="alternating"`` flips the diagonal cell by cell (no directional bias);
         ``"fixed"`` uses the same diagonal everywhere. Triangles are counter-clockwise about
-        ``u x w``.
+        ``u x w``. ``up_axis`` is the mesh's up axis (``"Y"``: a ``plane="xz"`` sheet is
+        horizontal; ``"Z"``: a ``plane="xy"`` sheet is).
         """
         if int(nx) != nx or int(ny) != ny or nx < 1 or ny < 1:
             raise ValueError(f"grid: nx and ny must be positive integers, got ({nx}, {ny})")
@@ -246,18 +346,42 @@ class TriMesh:
                     tris += [(v00, v10, v11), (v00, v11, v01)]
                 else:
                     tris += [(v00, v10, v01), (v10, v11, v01)]
-        return cls(verts, np.asarray(tris, dtype=np.int64), grid_shape=(nx, ny), name=name)
+        return cls(verts, np.asarray(tris, dtype=np.int64), grid_shape=(nx, ny), name=name,
+                   up_axis=up_axis)
 
     # ------------------------------------------------------------------ loaders
     @classmethod
-    def from_obj(cls, path: str | os.PathLike, name: str | None = None) -> "TriMesh":
+    def from_obj(cls, path: str | os.PathLike, name: str | None = None, *, scale: float = 1.0,
+                 up_axis: str = "Y") -> "TriMesh":
         """Load a Wavefront OBJ file: ``v`` lines and ``f`` lines (``i``, ``i/t``, ``i//n``,
         ``i/t/n``, negative = relative indices). Quads and polygons are fan-triangulated; other
-        statements are ignored."""
+        statements are ignored.
+
+        OBJ files carry no unit or up axis: ``scale`` (metres per file unit, e.g. 0.01 for a file
+        in centimetres) multiplies every coordinate, and ``up_axis`` (``"Y"``, the OBJ
+        convention, or ``"Z"``) says which axis is up in the file; it becomes the mesh's
+        `up_axis` (coordinates are not rotated).
+
+        Raises:
+            ValueError: naming the file and line of a malformed or undecodable line, an index out
+                of range, or a bad ``scale``/``up_axis``.
+        """
+        up_axis = check_up_axis(up_axis, f"{path}")
+        scale = _positive_finite(scale, f"{path}: scale")
         verts, tris = [], []
         name = name or os.path.splitext(os.path.basename(str(path)))[0]
-        with open(path, "r", encoding="utf-8") as fh:
-            for lineno, line in enumerate(fh, 1):
+        with open(path, "rb") as fh:
+            for lineno, raw in enumerate(fh, 1):
+                try:
+                    line = raw.decode("utf-8")
+                except UnicodeDecodeError as e:
+                    # comments and names may be in any encoding; statements we read are ASCII
+                    line = raw.decode("latin-1")
+                    hash_at = raw.find(b"#")
+                    in_comment = 0 <= hash_at < e.start
+                    if not in_comment and line.split()[0] in ("v", "f"):
+                        raise ValueError(f"{path}:{lineno}: bytes that are not UTF-8 "
+                                         f"({e.reason} at column {e.start + 1})") from None
                 parts = line.split("#", 1)[0].split()
                 if not parts:
                     continue
@@ -277,14 +401,19 @@ class TriMesh:
                             raise ValueError(f"{path}:{lineno}: bad face index {tok!r}") from None
                         if k == 0:
                             raise ValueError(f"{path}:{lineno}: OBJ indices start at 1, got 0")
-                        idx.append(k - 1 if k > 0 else len(verts) + k)
+                        j = k - 1 if k > 0 else len(verts) + k
+                        if not 0 <= j < len(verts) and abs(k) > 2**62:
+                            raise ValueError(f"{path}:{lineno}: face index {k} is out of range "
+                                             f"(the file has {len(verts)} vertices so far)")
+                        idx.append(j)
                     if len(idx) < 3:
                         raise ValueError(f"{path}:{lineno}: face needs at least 3 vertices")
                     for q in range(1, len(idx) - 1):
                         tris.append((idx[0], idx[q], idx[q + 1]))
         if not verts:
             raise ValueError(f"{path}: no vertices found")
-        return cls(np.asarray(verts), np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=name)
+        v = np.asarray(verts, dtype=np.float64) * scale
+        return cls(v, np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=name, up_axis=up_axis)
 
     def to_obj(self, path: str | os.PathLike) -> None:
         """Write the mesh as a Wavefront OBJ file."""
@@ -298,15 +427,24 @@ class TriMesh:
     def from_usd(cls, path: str | os.PathLike, prim_path: str | None = None, time=None) -> "TriMesh":
         """Load a `UsdGeom.Mesh` (the first one found, or the one at ``prim_path``).
 
-        Points are taken at ``time`` (default: the default time) and transformed to world space;
-        polygons are fan-triangulated.
+        Points are taken at ``time`` (default: the default value, else the earliest time sample)
+        and transformed to world space; polygons are fan-triangulated. The mesh keeps the stage's
+        frame: its coordinates are scaled by the stage's ``metersPerUnit`` to metres (the
+        simulator's unit), and its `up_axis` is the stage's ``upAxis``, so a Z-up file falls
+        along -z (`ClothModel`'s default gravity) and is written back Z-up.
         """
-        from pxr import Usd, UsdGeom
+        from pxr import Sdf, Tf, Usd, UsdGeom
 
-        stage = Usd.Stage.Open(str(path))
+        try:
+            stage = Usd.Stage.Open(str(path))
+        except Tf.ErrorException as e:
+            first = str(e).strip().splitlines()[-1].strip() if str(e).strip() else "unreadable"
+            raise ValueError(f"{path}: cannot open USD stage ({first})") from None
         if stage is None:
             raise ValueError(f"{path}: cannot open USD stage")
         if prim_path is not None:
+            if not Sdf.Path.IsValidPathString(str(prim_path)):
+                raise ValueError(f"{path}: {prim_path!r} is not a prim path")
             prim = stage.GetPrimAtPath(prim_path)
             if not prim or not prim.IsA(UsdGeom.Mesh):
                 raise ValueError(f"{path}: no UsdGeom.Mesh at {prim_path}")
@@ -314,13 +452,31 @@ class TriMesh:
             prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)), None)
             if prim is None:
                 raise ValueError(f"{path}: no UsdGeom.Mesh in the stage")
+        up_axis = str(UsdGeom.GetStageUpAxis(stage))
+        if up_axis not in ("Y", "Z"):
+            raise ValueError(f"{path}: unsupported upAxis {up_axis!r}")
+        mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+        if not (math.isfinite(mpu) and mpu > 0):
+            raise ValueError(f"{path}: metersPerUnit must be positive, got {mpu}")
         mesh = UsdGeom.Mesh(prim)
-        t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
-        pts = np.asarray(mesh.GetPointsAttr().Get(t), dtype=np.float64)
+        if time is not None:
+            t = Usd.TimeCode(time)
+        elif mesh.GetPointsAttr().Get(Usd.TimeCode.Default()) is not None:
+            t = Usd.TimeCode.Default()
+        else:
+            t = Usd.TimeCode.EarliestTime()
+        raw_pts = mesh.GetPointsAttr().Get(t)
+        if raw_pts is None or mesh.GetFaceVertexCountsAttr().Get(t) is None:
+            raise ValueError(f"{path}: {prim.GetPath()} has no points or faces")
+        pts = np.asarray(raw_pts, dtype=np.float64).reshape(-1, 3)
         counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(t), dtype=np.int64)
         idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(t), dtype=np.int64)
+        if counts.sum() != len(idx):
+            raise ValueError(f"{path}: {prim.GetPath()} has {len(idx)} face vertex indices, its "
+                             f"face counts add up to {int(counts.sum())}")
         xf = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(t), dtype=np.float64)
         pts = pts @ xf[:3, :3] + xf[3, :3]  # USD matrices act on row vectors
+        pts *= mpu
         tris, o = [], 0
         for c in counts:
             if c < 3:
@@ -328,4 +484,5 @@ class TriMesh:
             for q in range(1, c - 1):
                 tris.append((idx[o], idx[o + q], idx[o + q + 1]))
             o += c
-        return cls(pts, np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=prim.GetName())
+        return cls(pts, np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=prim.GetName(),
+                   up_axis=up_axis)

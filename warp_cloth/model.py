@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .mesh import TriMesh
+from .mesh import FLOAT32_MAX, TriMesh, _number_array, index_array
 
 __all__ = ["ClothModel", "State", "PinPath", "DEFAULT_DENSITY", "DEFAULT_STRETCH_STIFFNESS"]
 
@@ -32,6 +32,9 @@ DEFAULT_DENSITY = 0.15
 #: N/m per spring; for a spring grid this is close to the sheet's membrane stiffness, independent
 #: of resolution. Keeps the hanging 1 m sheet's stretch at a few tenths of a percent.
 DEFAULT_STRETCH_STIFFNESS = 1000.0
+
+#: m/s^2, down the mesh's up axis unless ``gravity`` is given
+STANDARD_GRAVITY = 9.81
 
 BENDING_MODELS = ("none", "springs", "dihedral", "quadratic")
 
@@ -105,11 +108,49 @@ class State:
         wp.copy(self.time, other.time)
 
 
-def _check_stiffness(name: str, k: float) -> float:
-    k = float(k)
+def _number(name: str, x) -> float:
+    """``x`` as a float, or `ValueError` naming the parameter."""
+    if isinstance(x, (str, bytes)) or x is None:
+        raise ValueError(f"{name} must be a number, got {x!r}")
+    try:
+        return float(x)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{name} must be a number, got {x!r}") from None
+
+
+def _check_float32(name: str, values, unit: str = "") -> None:
+    """Reject values the device's float32 arrays cannot hold (they would become inf)."""
+    a = np.abs(np.asarray(values, dtype=np.float64))
+    if a.size and a.max() > FLOAT32_MAX:
+        k = int(np.argmax(a.reshape(-1)))
+        where = f" (entry {k})" if a.size > 1 else ""
+        raise ValueError(f"{name}{where} is {np.asarray(values).reshape(-1)[k]:.4g}{unit}, beyond "
+                         f"the float32 range (+-{FLOAT32_MAX:.3g}) the simulation computes in")
+
+
+def _check_stiffness(name: str, k) -> float:
+    k = _number(name, k)
     if not (math.isfinite(k) and k >= 0.0):
         raise ValueError(f"{name} must be finite and >= 0, got {k}")
+    _check_float32(name, k)
     return k
+
+
+def _pin_indices(pins, n: int) -> np.ndarray:
+    """Pins as vertex indices: a list of integers, or a boolean mask with one entry per vertex."""
+    if pins is None:
+        return np.zeros(0, dtype=np.int64)
+    if not isinstance(pins, (str, bytes)):
+        try:
+            arr = np.asarray(pins)
+        except (TypeError, ValueError):
+            arr = None
+        if arr is not None and arr.dtype.kind == "b":
+            if arr.shape != (n,):
+                raise ValueError(f"pins: a boolean mask needs one entry per vertex ({n}), got "
+                                 f"shape {arr.shape}")
+            return np.flatnonzero(arr).astype(np.int64)
+    return index_array(pins, "pins", "vertex").reshape(-1)
 
 
 class ClothModel:
@@ -130,8 +171,11 @@ class ClothModel:
             methods damp numerically).
         pins: vertex indices held fixed (inverse mass 0).
         pin_path: optional `PinPath` the pins follow; without it they stay at their rest positions.
-        gravity: m/s^2.
-        damping: velocity damping rate in 1/s, ``v <- v exp(-damping dt)`` every step.
+        gravity: m/s^2, a 3-vector; default ``None``: 9.81 m/s^2 down the mesh's up axis
+            (``mesh.up_axis``: -y for a Y-up mesh, -z for a Z-up one such as a Z-up USD file).
+        damping: velocity damping rate in 1/s, ``v <- v exp(-damping dt)`` every step. The
+            library default is 0 (undamped: exact energy tests); the built-in scenes and the CLI
+            use 0.1 1/s.
         wind: optional `warp_cloth.forces.wind.Wind`.
         velocity: optional initial velocity, (3,) or (N, 3), m/s.
         positions: optional initial positions (N, 3), m (default: the mesh's vertices, which
@@ -152,7 +196,7 @@ class ClothModel:
         spring_damping: float = 0.0,
         pins=(),
         pin_path: PinPath | None = None,
-        gravity=(0.0, -9.81, 0.0),
+        gravity=None,
         damping: float = 0.0,
         wind=None,
         velocity=None,
@@ -167,22 +211,32 @@ class ClothModel:
 
         # ---- masses
         if masses is None:
-            density = float(density)
+            density = _number("density", density)
             if not (math.isfinite(density) and density > 0):
                 raise ValueError(f"density must be a positive finite number (kg/m^2), got {density}")
+            used = np.zeros(n, dtype=bool)
+            used[mesh.triangles.reshape(-1)] = True
+            if not used.all():
+                i = int(np.argmin(used))
+                raise ValueError(f"vertex {i} is isolated (in no triangle): it gets no mass from "
+                                 f"the density; remove it from the mesh or give masses")
             m = mesh.vertex_areas() * density
             self.density = density
         else:
-            m = np.asarray(masses, dtype=np.float64).reshape(-1)
+            m = _number_array(masses, "masses", "one mass per vertex in kg").reshape(-1)
             if len(m) != n:
                 raise ValueError(f"masses has {len(m)} entries, the mesh has {n} vertices")
             self.density = None
         bad = np.flatnonzero(~(np.isfinite(m) & (m > 0)))
         if len(bad):
             raise ValueError(f"vertex {int(bad[0])} has non-positive or non-finite mass {m[bad[0]]}")
+        _check_float32("mass of a vertex", m, " kg")
+        if (1.0 / m).max() > FLOAT32_MAX:
+            i = int(np.argmin(m))
+            raise ValueError(f"vertex {i} has mass {m[i]:.3g} kg: its inverse is beyond float32")
 
         # ---- pins
-        pins = np.asarray(pins, dtype=np.int64).reshape(-1)
+        pins = _pin_indices(pins, n)
         bad = np.flatnonzero((pins < 0) | (pins >= n))
         if len(bad):
             raise ValueError(f"pin {int(pins[bad[0]])} is not a vertex index in [0, {n - 1}]")
@@ -205,7 +259,8 @@ class ClothModel:
         self.pin_path = pin_path
 
         # ---- springs
-        ks_edges = np.asarray(stretch_stiffness, dtype=np.float64)
+        ks_edges = _number_array(stretch_stiffness, "stretch_stiffness",
+                                 "a number or one per edge (N/m)")
         if ks_edges.ndim == 0:
             ks_edges = np.full(len(mesh.edges), _check_stiffness("stretch_stiffness", ks_edges))
         elif ks_edges.shape != (len(mesh.edges),):
@@ -215,11 +270,12 @@ class ClothModel:
         if len(bad):
             raise ValueError(f"stretch_stiffness of edge {int(bad[0])} {tuple(mesh.edges[bad[0]])} "
                              f"must be finite and >= 0, got {ks_edges[bad[0]]}")
+        _check_float32("stretch_stiffness", ks_edges, " N/m")
         self.stretch_stiffness = float(ks_edges.max()) if len(ks_edges) else 0.0
         self.shear_stiffness = _check_stiffness("shear_stiffness", shear_stiffness)
         self.bend_stiffness = _check_stiffness("bend_stiffness", bend_stiffness)
         self.spring_damping = _check_stiffness("spring_damping", spring_damping)
-        if bending not in BENDING_MODELS:
+        if not isinstance(bending, str) or bending not in BENDING_MODELS:
             raise ValueError(f"bending must be one of {BENDING_MODELS}, got {bending!r}")
         self.bending = bending
         pairs, ks, kinds = [mesh.edges], [ks_edges], ["stretch"]
@@ -234,30 +290,45 @@ class ClothModel:
         self.spring_stiffness = np.concatenate(ks)
         x0 = mesh.vertices
         self.spring_rest = np.linalg.norm(x0[pairs[:, 0]] - x0[pairs[:, 1]], axis=1)
+        _check_float32("a spring's rest length", self.spring_rest, " m")
         self.num_stretch_springs = len(mesh.edges)  # the first springs are the mesh edges
 
         # ---- global parameters
-        g = np.asarray(gravity, dtype=np.float64).reshape(-1)
+        #: the mesh's up axis ("Y" or "Z") and its index: heights in RunStats, the output frame
+        self.up_axis = mesh.up_axis
+        self.up_index = 1 if mesh.up_axis == "Y" else 2
+        if gravity is None:
+            g = np.zeros(3)
+            g[self.up_index] = -STANDARD_GRAVITY
+        else:
+            g = _number_array(gravity, "gravity", "3 numbers (m/s^2)").reshape(-1)
         if g.shape != (3,) or not np.all(np.isfinite(g)):
             raise ValueError(f"gravity must be 3 finite numbers, got {gravity}")
+        _check_float32("gravity", g, " m/s^2")
         self.gravity = tuple(float(c) for c in g)
         self.damping = _check_stiffness("damping", damping)
 
         v0 = np.zeros((n, 3))
         if velocity is not None:
-            v0 = np.broadcast_to(np.asarray(velocity, dtype=np.float64), (n, 3)).copy()
+            va = _number_array(velocity, "velocity", "a 3-vector or (N, 3) array (m/s)")
+            try:
+                v0 = np.broadcast_to(va, (n, 3)).copy()
+            except ValueError:
+                raise ValueError(f"velocity must have shape (3,) or ({n}, 3), got {va.shape}") from None
             if not np.all(np.isfinite(v0)):
                 raise ValueError("initial velocity must be finite")
+            _check_float32("velocity", v0, " m/s")
             v0[pins] = 0.0
         self.initial_velocity = v0
         x0 = mesh.vertices
         if positions is not None:
-            x0 = np.asarray(positions, dtype=np.float64)
+            x0 = _number_array(positions, "positions", f"an ({n}, 3) array (m)")
             if x0.shape != (n, 3):
                 raise ValueError(f"positions must have shape ({n}, 3), got {x0.shape}")
             bad = np.flatnonzero(~np.isfinite(x0).all(axis=1))
             if len(bad):
                 raise ValueError(f"positions of vertex {int(bad[0])} are not finite")
+            _check_float32("positions", x0, " m")
         self.initial_positions = x0
 
         # ---- device arrays (built once)

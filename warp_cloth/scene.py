@@ -43,12 +43,15 @@ class RunStats:
     ms_per_substep: float
     max_strain: float  # largest mesh-edge stretch l/L - 1 over all frames (compression not counted)
     final_max_strain: float
-    min_height: float  # along the up axis (y), over all frames
+    min_height: float  # along the model's up axis (mesh.up_axis: y or z), over all frames
     max_height: float
     energy_initial: float
     energy_final: float
     captured: bool
     timed_frames: int = 0  # frames in wall_s (not the first, nor the one that recorded the graph)
+    #: set-up inside the run, compiles included: the first measurement (which compiles the
+    #: diagnostics), the first frame and the frame that recorded the graph (not USD output)
+    setup_s: float = 0.0
     out: str | None = None
     # with ``check_intersections``: frames whose cloth passes through itself, and the most
     # crossing (edge, triangle) pairs in one frame (None: not checked)
@@ -63,7 +66,8 @@ class RunStats:
         return (
             f"{self.method}: {self.frames} frames x {self.substeps} substeps (dt {self.dt:.3g} s), "
             f"{self.ms_per_frame:.3f} ms/frame, {self.ms_per_substep:.4f} ms/substep "
-            f"(first frame incl. compile {self.first_frame_s:.2f} s); max strain "
+            f"(set-up incl. compile {self.setup_s:.2f} s, of which first frame "
+            f"{self.first_frame_s:.2f} s); max strain "
             f"{100 * self.max_strain:.3f} %, final {100 * self.final_max_strain:.3f} %; height "
             f"[{self.min_height:.3f}, {self.max_height:.3f}] m; energy {self.energy_initial:.4g} -> "
             f"{self.energy_final:.4g} J"
@@ -74,11 +78,29 @@ class RunStats:
         )
 
 
+def _clock(seconds: float) -> str:
+    s = int(round(seconds))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+
+
 class _Progress:
+    """A one-line progress bar on stderr: frames done, rate and time remaining.
+
+    The rate (and so the time remaining) counts from the third frame on, after the first
+    frame's compile and the graph recording."""
+
     def __init__(self, total: int, enabled: bool, label: str):
         self.total, self.enabled, self.label = total, enabled, label
         self.t0 = _time.perf_counter()
         self._last = 0.0
+        self._steady = None  # (time, frames done) when the steady rate starts
+
+    def eta(self, done: int, now: float) -> float | None:
+        """Seconds remaining at the steady rate; ``None`` until it is known."""
+        if self._steady is None or done <= self._steady[1] or now <= self._steady[0]:
+            return None
+        rate = (done - self._steady[1]) / (now - self._steady[0])
+        return (self.total - done) / rate
 
     def note(self, msg: str):
         """A line on stderr above the bar (the bar is drawn again on its next update)."""
@@ -92,15 +114,19 @@ class _Progress:
         if not self.enabled:
             return
         now = _time.perf_counter()
+        if self._steady is None and done >= min(3, self.total):
+            self._steady = (now, done)
         if done < self.total and now - self._last < 0.1:
             return
         self._last = now
         w = 30
         fill = int(w * done / max(self.total, 1))
         rate = done / max(now - self.t0, 1e-9)
+        eta = self.eta(done, now)
+        left = f", {_clock(eta)} left" if eta is not None and done < self.total else ""
         sys.stderr.write(
             f"\r{self.label} [{'#' * fill}{'.' * (w - fill)}] {done}/{self.total} frames "
-            f"{rate:.1f} frames/s"
+            f"{rate:.1f} frames/s{left}   "
         )
         if done >= self.total:
             sys.stderr.write("\n")
@@ -160,8 +186,12 @@ class Scene:
 
     def run(self, out: str | os.PathLike | None = None, *, quiet: bool = False,
             progress: bool | None = None, energy: bool = True, on_frame=None,
-            check_intersections: bool = False) -> RunStats:
+            save_interval: float = 2.0, check_intersections: bool = False) -> RunStats:
         """Run from the initial state; write ``out`` (a ``.usd``) if given.
+
+        The file is saved every ``save_interval`` seconds of wall time (0: after every frame) and
+        when the run ends for any reason; it is readable at every moment (`warp_cloth.usd`).
+        An unwritable ``out`` raises `warp_cloth.usd.OutputError`.
 
         ``check_intersections``: count every frame's crossing (edge, triangle) pairs of the cloth
         (`warp_cloth.collision.check.SelfIntersectionChecker`) into ``RunStats.crossing_frames``
@@ -186,11 +216,12 @@ class Scene:
         writer = None
         mesh_path = None
         if out is not None:
-            writer = UsdWriter(out, fps=self.fps)
+            writer = UsdWriter(out, fps=self.fps, up_axis=model.up_axis,
+                               save_interval=save_interval)
             mesh_path = writer.add_mesh(model.mesh.name, model.mesh.triangles)
             for ob in self.obstacles:
                 writer.add_obstacle(ob)
-        up = 1  # y up
+        up = model.up_index  # heights along the mesh's up axis
         checker = None
         crossing_frames, max_crossings = 0, 0
         if check_intersections:
@@ -206,7 +237,9 @@ class Scene:
         max_strain = 0.0
         lo, hi = math.inf, -math.inf
         try:
-            m0 = meter(state, energy=energy)
+            t_setup = _time.perf_counter()
+            m0 = meter(state, energy=energy)  # compiles the diagnostics on a cold cache
+            setup = _time.perf_counter() - t_setup
             e0 = m0.energy
             mfin = m0
             for frame in range(self.frames):
@@ -229,7 +262,10 @@ class Scene:
                     dtw = _time.perf_counter() - t0
                     if frame == 1:
                         first = dtw
-                    elif not recording:  # recording the graph is set-up, like compiling
+                        setup += dtw
+                    elif recording:  # recording the graph is set-up, like compiling
+                        setup += dtw
+                    else:
                         wall += dtw
                         timed += 1
                     if math.isfinite(mfin.max_strain):
@@ -271,6 +307,7 @@ class Scene:
             ms_per_frame=ms_frame, ms_per_substep=ms_frame / self.substeps, max_strain=max_strain,
             final_max_strain=mfin.max_strain, min_height=lo, max_height=hi, energy_initial=e0,
             energy_final=mfin.energy, captured=graph is not None, timed_frames=timed,
+            setup_s=setup,
             out=os.fspath(out) if out is not None else None, extra=dict(solver.stats),
             crossing_frames=crossing_frames if checker is not None else None,
             max_crossings=max_crossings if checker is not None else None,
