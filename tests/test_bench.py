@@ -124,9 +124,11 @@ def test_selfcollision_bench_reports_both_variants(capsys):
     assert selfcollision.main(["--solver", "pd", "--res", "8", "--warmup", "60", "--rounds", "1",
                                "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
-    assert len(rows) == 1 and rows[0]["solver"] == "pd"
-    assert rows[0]["ms_step_with"] > 0 and rows[0]["ms_step_without"] > 0
-    assert rows[0]["contacts_per_step"] > 0  # it timed the folded, touching state
+    assert [(r["solver"], r["broadphase"]) for r in rows] == [("pd", "grid"), ("pd", "bvh")]
+    for r in rows:
+        assert r["ms_step_with"] > 0 and r["ms_step_without"] > 0
+        assert r["contacts_per_step"] > 0  # it timed the folded, touching state
+    assert rows[0]["ms_step_without"] == rows[1]["ms_step_without"]  # one baseline per solver
 
 
 def test_ccd_bench_totals_line(capsys):

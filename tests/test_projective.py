@@ -329,3 +329,22 @@ def test_quadratic_bending_enters_the_constant_matrix():
     plain = PDSystemOperator(hanging_model(res=4, device="cpu"), 1.0 / DT**2)
     Q = dense_matrix(p.operator) - dense_matrix(plain)
     assert np.abs(Q).max() > 0 and np.allclose(Q, Q.T, atol=1e-6 * np.abs(Q).max())
+
+
+def test_default_inner_solver_is_cg_with_a_collision_stage():
+    """Chebyshev's spectral radius is measured on the contact-free matrix: with a collision
+    stage (contact blocks in the matrix) the default inner solver is CG, built anew when the
+    stage is given after a first step; a solver named by the user is kept."""
+    from warp_cloth.collision import CollisionStage, Plane
+
+    m = hanging_model(res=3, device="cpu")
+    pd = ProjectiveDynamics(m)
+    st = m.state()
+    pd.step(st, 1e-3)
+    assert pd.linear_name == "chebyshev" and type(pd.linear).__name__.lower().startswith("cheb")
+    pd.set_collision(CollisionStage(m, [Plane()]))
+    pd.step(st, 1e-3)
+    assert pd.linear_name == "cg" and "cg" in type(pd.linear).__name__.lower()
+    assert "cg x20" in pd.describe()
+    kept = ProjectiveDynamics(m, linear="chebyshev", collision=CollisionStage(m, [Plane()]))
+    assert kept.linear_name == "chebyshev"

@@ -65,7 +65,7 @@ def main(argv=None) -> int:
             variants[bp] = sc if sc.broad.method == bp else SelfCollision(
                 scene.model, sc.thickness, sc.rounds, sc.iterations, broadphase=bp)
         times = {k: [] for k in variants}
-        contacts = 0
+        contacts = {}
         for r in range(args.rounds):
             for variant, obj in variants.items():
                 stage.self_collision = obj
@@ -77,14 +77,15 @@ def main(argv=None) -> int:
                 _frame(solver, state, substeps, dt)
                 times[variant].append(time.perf_counter() - t0)
                 if obj is not None and r == 0:
-                    contacts = obj.stats["self_contacts"]
+                    contacts[variant] = obj.stats["self_contacts"]
         stage.self_collision = sc
         wo = 1e3 * statistics.median(times["without"]) / substeps
         for bp in args.broadphase:
             w = 1e3 * statistics.median(times[bp]) / substeps
             rows.append(dict(solver=name, broadphase=bp, substeps=substeps, ms_step_with=w,
                              ms_step_without=wo, overhead=w / wo - 1.0,
-                             contacts_per_step=contacts, vertices=scene.model.num_vertices))
+                             contacts_per_step=contacts[bp],
+                             vertices=scene.model.num_vertices))
     if args.json:
         print(json.dumps(rows, indent=1))
         return 0
