@@ -479,7 +479,7 @@ def render_file(path, out, *, frames=None, size=(640, 480), camera=None, fov=40.
 def cmd_render(args, parser) -> int:
     from .viewer.render import parse_size
 
-    quiet_warp()
+    init_warp(device=args.device)
     try:
         size = parse_size(args.size)
     except ValueError as e:
