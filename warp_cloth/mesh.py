@@ -25,19 +25,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .util import positive_finite
+
 __all__ = ["TriMesh", "edge_triples", "check_up_axis"]
 
 UP_AXES = ("Y", "Z")
 
 
 def _positive_finite(x, what: str) -> float:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what} must be a positive number, got {x!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise ValueError(f"{what} must be positive and finite, got {x!r}")
-    return v
+    return positive_finite(x, what)
 
 
 #: largest finite float32: the device arrays' type

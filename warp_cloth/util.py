@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 
 import warp as wp
 
@@ -60,3 +61,16 @@ def init_warp(*, verbose: bool = False, device=None) -> None:
     if kept:
         sys.stderr.write("\n".join(kept) + "\n")
         sys.stderr.flush()
+
+
+def positive_finite(value, what: str, unit: str = "") -> float:
+    """``float(value)`` if it is a positive finite number, else a `ValueError` naming ``what``
+    (and its ``unit``, e.g. ``"metres"``)."""
+    of = f" of {unit}" if unit else ""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a positive number{of}, got {value!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{what} must be positive and finite{of}, got {value!r}")
+    return v

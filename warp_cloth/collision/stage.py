@@ -41,18 +41,13 @@ import warp as wp
 from .contact import DEFAULT_THICKNESS, ObstacleContact
 from .obstacles import Obstacle
 from .record import make_record
+from ..util import positive_finite
 
 __all__ = ["CollisionStage", "DEFAULT_SOLVE_MARGIN"]
 
 
 def _positive(name, value) -> float:
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number of metres, got {value!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"{name} must be > 0 metres, got {value}")
-    return value
+    return positive_finite(value, name, "metres")
 
 #: m; a vertex whose predicted path comes this far beyond the contact thickness of an obstacle
 #: gets a constraint in the record (the solve may move it that much off its prediction)

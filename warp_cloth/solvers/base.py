@@ -26,16 +26,11 @@ import math
 import warp as wp
 
 from . import common
+from ..util import positive_finite
 
 
 def check_dt(dt) -> float:
-    try:
-        dt = float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"dt must be a number of seconds, got {dt!r}") from None
-    if not (math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive finite number of seconds, got {dt}")
-    return dt
+    return positive_finite(dt, "dt", "seconds")
 
 
 def _as_stage(model, collision):

@@ -65,6 +65,7 @@ import numpy as np
 import warp as wp
 
 from ..collision.record import KIND_VERTEX_OBSTACLE, ContactRecord
+from ..util import positive_finite
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
@@ -393,13 +394,7 @@ class ContactCoupling:
 
     @staticmethod
     def _check(stiffness, name="contact_stiffness") -> float:
-        try:
-            stiffness = float(stiffness)
-        except (TypeError, ValueError):
-            raise ValueError(f"{name} must be a number, got {stiffness!r}") from None
-        if not (math.isfinite(stiffness) and stiffness > 0):
-            raise ValueError(f"{name} must be > 0, got {stiffness}")
-        return stiffness
+        return positive_finite(stiffness, name)
 
     def __init__(self, model, stage, stiffness: float = DEFAULT_CONTACT_STIFFNESS,
                  friction_velocity: float = DEFAULT_FRICTION_VELOCITY):
