@@ -349,3 +349,51 @@ def test_spring_of_zero_stiffness_is_no_constraint():
     x = st.positions()
     np.testing.assert_allclose(x[0] - mesh.vertices[0], [0.1, 0, 0], atol=1e-5)
     np.testing.assert_allclose(x[1] - mesh.vertices[1], [-0.1, 0, 0], atol=1e-5)
+
+
+def _static_equilibrium(model, gravity):
+    """Exact static equilibrium of the model's springs under ``gravity`` (Newton on the host,
+    in the plane z = 0, which holds by symmetry for a planar xy mesh)."""
+    x = model.mesh.vertices.astype(np.float64).copy()
+    n = len(x)
+    mass = model.mass.numpy().astype(np.float64)
+    dof = np.repeat(model.inverse_masses > 0, 3) & np.tile([True, True, False], n)
+    for _ in range(50):
+        f = mass[:, None] * np.asarray(gravity, dtype=np.float64)[None, :]
+        H = np.zeros((3 * n, 3 * n))
+        for (i, j), k, L in zip(model.spring_pairs, model.spring_stiffness, model.spring_rest):
+            d = x[i] - x[j]
+            l = np.linalg.norm(d)
+            u = d / l
+            f[i] -= k * (l - L) * u
+            f[j] += k * (l - L) * u
+            P = np.outer(u, u)
+            B = k * P + k * (1 - L / l) * (np.eye(3) - P)
+            for a, b, s in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
+                H[3 * a:3 * a + 3, 3 * b:3 * b + 3] += s * B
+        dx = np.linalg.solve(H[np.ix_(dof, dof)], f.reshape(-1)[dof])
+        flat = x.reshape(-1)
+        flat[dof] += dx
+        x = flat.reshape(-1, 3)
+        if np.abs(dx).max() < 1e-13:
+            break
+    return x
+
+
+@pytest.mark.parametrize("gs,its", [(False, 40), (True, 10)])
+def test_xpbd_springs_settle_at_the_exact_equilibrium_jacobi_and_gauss_seidel(gs, its):
+    """Issue 14: XPBD with compliance 1/k on a one-cell strip hanging from its top edge settles
+    at the exact static equilibrium of the springs, with Jacobi as with Gauss-Seidel (Jacobi's
+    per-vertex averaging used to scale the multipliers and settled 5 % too soft: 1.4 mm off
+    here). The damping factor exp(-c dt) multiplies the gravity increment, hence g_eff."""
+    mesh = TriMesh.grid(1, 1, size=0.1, plane="xy", origin=(0.0, -0.1, 0.0))
+    c, dt = 5.0, 1.0 / 120
+    model = ClothModel(mesh, density=15.0, stretch_stiffness=10.0, pins=[2, 3], damping=c)
+    assert np.allclose(mesh.vertices[[2, 3], 1], 0.0)  # the top edge is pinned
+    exact = _static_equilibrium(model, (0.0, -9.81 * math.exp(-c * dt), 0.0))
+    assert -exact[:, 1].min() - 0.1 > 0.03  # a 30 % stretch: the bias would show
+    solver = PositionBased(model, iterations=its, compliance="springs", gauss_seidel=gs)
+    state = model.state()
+    for _ in range(int(4.0 / dt)):
+        solver.step(state, dt)
+    assert np.abs(state.positions() - exact).max() < 2e-4

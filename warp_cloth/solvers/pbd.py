@@ -46,9 +46,14 @@ distance constraint the XPBD update ``dlambda = (-C - a~ lambda)/(w_i + w_j + a~
 ``a~ = a/dt^2`` and ``lambda`` reset each step, so the converged stiffness is ``1/a`` whatever the
 iteration count and time step. ``compliance="springs"`` uses ``1/k`` of each spring of the model
 (the mass-spring physics). ``compliance=0`` is plain PBD; ``None`` (default) is plain PBD without
-the multiplier bookkeeping. In Jacobi mode the multiplier increment is scaled by the same
-averaging the positions get (``(w_i s_i + w_j s_j)/(w_i + w_j)`` with ``s = 1/(n + alpha)``), which
-is exact on vertices of equal valence and slightly off at boundaries.
+the multiplier bookkeeping. In Jacobi mode with multipliers each constraint takes its own share
+``s_e = 1/(max(n_i, n_j) + alpha)`` of its update ``dlambda`` (both positions and ``lambda`` move by
+``s_e dlambda``) and the blend adds the shares unscaled: at every vertex the shares sum to at most
+1, so the blend stays a sub-convex combination, and ``x - x* = M^-1 grad C^T lambda`` holds exactly,
+so the converged state is XPBD's (the exact spring equilibrium at rest). Averaging per vertex
+instead, as plain PBD does, moves the two ends of a constraint by different fractions ``1/n_i``,
+``1/n_j``; no single ``lambda`` then matches both, and the strip settled 5 % too soft at
+boundaries whatever the iteration count (tests/test_pbd.py checks the exact equilibrium).
 
 **Pins** have zero inverse mass: prediction and projection never move them; scripted pins are put
 at their targets by the base class before the step and keep the velocity it gives them.
@@ -119,12 +124,16 @@ def jacobi_distance_kernel(
     compliance: wp.array(dtype=float),
     lam: wp.array(dtype=float),
     inv_mass: wp.array(dtype=float),
-    vscale: wp.array(dtype=float),
+    escale: wp.array(dtype=float),
     inv_dt2: float,
     use_lambda: int,
     delta: wp.array(dtype=wp.vec3),
 ):
-    """One thread per distance constraint: scatter its correction into ``delta`` (atomics)."""
+    """One thread per distance constraint: scatter its correction into ``delta`` (atomics).
+
+    With multipliers (XPBD) the correction is scaled by the constraint's own share ``escale[e] =
+    1/(max(n_i, n_j) + alpha)`` and the multiplier advances by exactly what both ends realise
+    (the blend then adds ``delta`` unscaled); see the module docstring."""
     e = wp.tid()
     i = cons[e, 0]
     j = cons[e, 1]
@@ -140,9 +149,8 @@ def jacobi_distance_kernel(
         if l < 1.0e-12 or wsum <= 0.0:
             return
         at = compliance[e] * inv_dt2
-        dl = (rest[e] - l - at * lam[e]) / (wsum + at)
-        # the multiplier advances by what the averaged positions realise (see module docstring)
-        lam[e] = lam[e] + dl * (wi * vscale[i] + wj * vscale[j]) / wsum
+        dl = escale[e] * (rest[e] - l - at * lam[e]) / (wsum + at)
+        lam[e] = lam[e] + dl  # both ends move by w dl grad C: positions and lambda agree
         g = dl / l * d
     wp.atomic_add(delta, i, wi * g)
     wp.atomic_sub(delta, j, wj * g)
@@ -335,9 +343,20 @@ class PositionBased(Solver):
         self._compliance = wp.array(comp.astype(np.float32), dtype=float, device=d)
         self._lambda = wp.zeros(max(len(pairs), 1), dtype=float, device=d)
         self._count = wp.array(count.astype(np.float32), dtype=float, device=d)
-        # s_i = 1/(n_i + alpha), the share of a correction vertex i realises per Jacobi iteration
-        scale = np.where(count + a > 0, 1.0 / np.maximum(count + a, 1e-30), 0.0)
-        self._vscale = wp.array(scale.astype(np.float32), dtype=float, device=d)
+        # XPBD Jacobi: each constraint scaled by its own share 1/(max(n_i, n_j) + alpha), so the
+        # blend adds the corrections unscaled (a sub-convex combination at every vertex) and the
+        # multiplier stays consistent with the positions; plain PBD averages per vertex instead
+        if len(pairs):
+            escale = 1.0 / (np.maximum(count[pairs[:, 0]], count[pairs[:, 1]]) + a)
+        else:
+            escale = np.zeros(0)
+        self._escale = wp.array(escale.astype(np.float32), dtype=float, device=d)
+        if self.use_lambda:
+            self._blend_count = wp.array((count > 0).astype(np.float32), dtype=float, device=d)
+            self._blend_alpha = 0.0
+        else:
+            self._blend_count = self._count
+            self._blend_alpha = a
         self._delta = wp.zeros(n, dtype=wp.vec3, device=d)
         self._xp = wp.zeros(n, dtype=wp.vec3, device=d)
         self._f = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -372,10 +391,10 @@ class PositionBased(Solver):
                 last = finish_velocity and not projectors and it == iterations - 1
                 wp.launch(jacobi_distance_kernel, self.num_constraints,
                           [x, self._cons, self._rest, self._compliance, self._lambda, m.inv_mass,
-                           self._vscale, inv_dt2, self.use_lambda, self._delta], device=d)
+                           self._escale, inv_dt2, self.use_lambda, self._delta], device=d)
                 wp.launch(jacobi_blend_kernel, m.num_vertices,
-                          [x, v, self._xp, self._delta, self._count, m.inv_mass,
-                           self.relaxation, 1.0 / dt, int(last)], device=d)
+                          [x, v, self._xp, self._delta, self._blend_count, m.inv_mass,
+                           self._blend_alpha, 1.0 / dt, int(last)], device=d)
                 fused = fused or last
             for c in projectors:
                 c.project_positions(x, self._x_start, dt)
