@@ -332,6 +332,11 @@ def test_cli_runs_pbd(tmp_usd):
     import os
 
     assert os.path.getsize(tmp_usd) > 0
+    assert main(["run", "hanging", "--solver", "pbd", "--no-tethers", "--res", "4", "--frames",
+                 "2", "--substeps", "2", "--quiet", "--out", tmp_usd]) == 0
+    with pytest.raises(SystemExit) as e:
+        main(["run", "hanging", "--no-tethers", "--res", "4", "--frames", "2", "--quiet"])
+    assert e.value.code == 2
 
 
 def test_spring_of_zero_stiffness_is_no_constraint():

@@ -408,8 +408,9 @@ class PositionBased(Solver):
         default_substeps: substeps per frame the scene runner uses when none is given: 64 for
             Jacobi, 32 for Gauss-Seidel. Measured on the default hanging scene (1 m, 32 x 32 cells,
             0.15 kg/m^2, 60 fps, 10 iterations), these keep the maximum edge strain of the first
-            fall at about 3.7 % (Jacobi) and 2.9 % (Gauss-Seidel), settling under 1 %; 16 substeps
-            let Jacobi stretch 36 %. PBD stiffness comes from substeps more than iterations:
+            fall at about 1.3 % (Jacobi) and 2.2 % (Gauss-Seidel) with the default tethers (3.7 %
+            and 2.9 % without), settling under 1 %; 16 substeps let Jacobi stretch 6.1 % (36 %
+            without tethers). PBD stiffness comes from substeps more than iterations:
             1 iteration x 320 substeps gives 1.9 % at about 60 % of the cost (small steps).
             The count is not resolution-aware: on the finer 64 x 32-cell cloth of
             ``warp-cloth bench pbd`` the same settings end 0.5 s at 10.9 % strain (explicit:
