@@ -145,3 +145,39 @@ def test_bad_dt_and_solver_options():
         make_solver("explicit", model, iterations=3)
     with pytest.raises(ValueError, match="different model"):
         Scene(ClothModel(TRI), solver)
+
+
+@pytest.mark.parametrize("bending", ["quadratic", "dihedral"])
+def test_stable_dt_counts_bending_and_dashpots(bending):
+    """Issue 14: the automatic substeps count bending and spring dashpots. The bound falls as the
+    bending stiffness rises and as the dashpot grows; a run at the suggested substeps stays finite
+    and bounded, one at a quarter of them (twice the bound) blows up."""
+    from warp_cloth.scenes import hanging_model
+
+    sdt = [SymplecticEuler.stable_dt(hanging_model(res=8, bending=bending, bend_stiffness=kb))
+           for kb in (0.0, 0.1, 1.0, 10.0)]
+    assert all(a > b for a, b in zip(sdt, sdt[1:])), sdt
+    damped = [SymplecticEuler.stable_dt(hanging_model(res=8, spring_damping=c)) for c in (0, 0.01, 0.1)]
+    assert damped[0] == pytest.approx(sdt[0]) and damped[0] > damped[1] > damped[2]
+    scene = hanging(res=8, bending=bending, bend_stiffness=1.0, frames=10, device="cpu")
+    assert scene.substeps >= 40
+    stats = scene.run(None, quiet=True)
+    assert stats.max_strain < 0.02
+    fewer = hanging(res=8, bending=bending, bend_stiffness=1.0, frames=10, device="cpu",
+                    substeps=scene.substeps // 4)
+    with pytest.raises(SimulationDiverged):
+        fewer.run(None, quiet=True)
+
+
+def test_stable_dt_of_the_dashpot_is_the_exact_two_mode_bound():
+    """One spring (k, c) to a pinned vertex: symplectic Euler is stable iff
+    dt^2 w^2 + 2 dt g < 4 with w^2 = k/m, g = c/m; the Gershgorin bound uses 2k and 2c."""
+    k, m, c = 40.0, 0.1, 0.3
+    model = ClothModel(TRI, masses=[m, m, m], stretch_stiffness=[k, 0.0, 0.0], gravity=(0, 0, 0),
+                       pins=[0, 2], spring_damping=c)
+    # vertex 1 is in two springs, (0, 1) of stiffness k and (1, 2) of stiffness 0; both have the dashpot
+    K, C = SymplecticEuler.stiffness_row_sums(model)
+    assert K[1] == pytest.approx(2 * k) and C[1] == pytest.approx(2 * 2 * c)
+    w2, g = K[1] / m, C[1] / m
+    dt = SymplecticEuler.stable_dt(model)
+    assert dt * dt * w2 + 2 * dt * g == pytest.approx(4.0)

@@ -43,6 +43,7 @@ SOLVER_OPTIONS = {
     "iterations": ("iterations", ("pbd", "pd")),
     "gauss_seidel": ("gauss_seidel", ("pbd",)),
     "compliance": ("compliance", ("pbd",)),
+    "no_tethers": ("tethers", ("pbd",)),
 }
 
 
@@ -143,6 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--iterations", type=_positive_int, default=None, help="pbd, pd")
     r.add_argument("--gauss-seidel", action="store_true", default=None, help="pbd: coloured GS")
     r.add_argument("--compliance", type=_nonneg_float, default=None, help="pbd: XPBD compliance")
+    r.add_argument("--no-tethers", action="store_const", const=False, default=None,
+                   help="pbd: no long-range attachments to the pins (on by default with pins)")
     r.add_argument("--strain-limit", type=_range_pair, default=None, metavar="SMIN,SMAX")
     r.add_argument("--area-limit", type=_range_pair, default=None, metavar="AMIN,AMAX")
     r.add_argument("--friction", type=_nonneg_float, default=None,

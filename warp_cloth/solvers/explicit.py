@@ -7,9 +7,10 @@
 Two launches per step without optional forces (springs, integrate; the integrate kernel clears
 the force accumulator for the next step). Pinned vertices (inverse mass 0) are skipped.
 
-Stability: conditional. For a spring network, ``dt < 2 / omega_max`` with ``omega_max^2`` bounded
-by Gershgorin as ``max_i 2 sum_e k_e / m_i``; `SymplecticEuler.stable_dt` returns that bound and
-the scene runner uses a fraction of it when no substep count is given. Past it the method
+Stability: conditional: ``dt < 2 / omega_max`` (less with spring dashpots), ``omega_max^2``
+bounded by Gershgorin on ``M^-1 K`` with every stiff term in ``K``: springs, dihedral or quadratic
+bending (``max_i sum_j ||H_ij|| / m_i``); `SymplecticEuler.stable_dt` returns that bound and the
+scene runner uses half of it when no substep count is given. Past it the method
 explodes (T1); the runner's divergence guard stops the run with `SimulationDiverged`.
 """
 
@@ -50,6 +51,25 @@ def integrate_symplectic_kernel(
     f[i] = wp.vec3(0.0)
 
 
+def _dihedral_gradient_norms(positions, quads) -> np.ndarray:
+    """``|u_1| .. |u_4|`` (B x 4, in the quad order a, b, c, d) of the dihedral-angle gradient
+    (`warp_cloth.forces.bending`, notes' names ``x1 = c, x2 = d, x3 = a, x4 = b``) at ``positions``."""
+    x = np.asarray(positions, dtype=np.float64)
+    x3, x4, x1, x2 = (x[quads[:, i]] for i in range(4))
+    N1 = np.cross(x1 - x3, x1 - x4)
+    N2 = np.cross(x2 - x4, x2 - x3)
+    E = x4 - x3
+    el = np.maximum(np.linalg.norm(E, axis=1), 1e-300)[:, None]
+    a = N1 / np.maximum(np.einsum("ij,ij->i", N1, N1), 1e-300)[:, None]
+    b = N2 / np.maximum(np.einsum("ij,ij->i", N2, N2), 1e-300)[:, None]
+    u1, u2 = el * a, el * b
+    u3 = np.einsum("ij,ij->i", x1 - x4, E)[:, None] / el * a + \
+        np.einsum("ij,ij->i", x2 - x4, E)[:, None] / el * b
+    u4 = -np.einsum("ij,ij->i", x1 - x3, E)[:, None] / el * a - \
+        np.einsum("ij,ij->i", x2 - x3, E)[:, None] / el * b
+    return np.stack([np.linalg.norm(u, axis=1) for u in (u3, u4, u1, u2)], axis=1)
+
+
 class SymplecticEuler(Solver):
     """Explicit (symplectic) Euler. ``solver.step(state, dt)``.
 
@@ -87,31 +107,74 @@ class SymplecticEuler(Solver):
         )
 
     @staticmethod
-    def stable_dt(model) -> float:
-        """Gershgorin bound ``2 / omega_max`` for the spring network (seconds).
+    def stiffness_row_sums(model):
+        """Per-vertex Gershgorin row sums of the stiffness and damping matrices (N/m, N s/m).
 
-        Conservative: ``omega_max^2 <= max_i 2 sum_{e at i} k_e / m_i``. Springs only; bending and
-        wind are much softer for cloth and ignored. Spring dashpots lower it further: the bound
-        is scaled by ``sqrt(1 + zeta^2) - zeta`` with ``zeta = c omega / (2 k)``.
+        Returns ``(K, C)``, two (N,) arrays: ``K_i = sum_j ||H_ij||`` (3x3 block norms) over every
+        stiff term of the model, ``C_i`` the same for the spring dashpots.
+
+        - springs: ``||H_e|| <= k`` (equal at rest), so each spring adds ``2 k`` to both ends;
+        - quadratic bending (exact, constant ``Q = w w^T (x) I``): ``|w_i| sum_j |w_j|`` per quad;
+        - dihedral bending: its Hessian at the rest shape, ``k c cos(theta0/2)/2 g g^T``
+          (`warp_cloth.forces.bending`; exact there, where the dropped terms vanish), adds
+          ``k c cos(theta0/2)/2 |g_i| sum_j |g_j|`` per quad (``g`` from the rest geometry);
+        - dashpots: ``c P`` per spring, ``2 c`` to both ends.
+
+        Wind is ignored: a velocity-dependent drag far softer than these for cloth.
         """
-        if model.num_springs == 0:
-            return math.inf
-        ksum = np.zeros(model.num_vertices)
-        np.add.at(ksum, model.spring_pairs[:, 0], model.spring_stiffness)
-        np.add.at(ksum, model.spring_pairs[:, 1], model.spring_stiffness)
+        from ..forces.bending import DihedralBending, QuadraticBending
+
+        n = model.num_vertices
+        K = np.zeros(n)
+        C = np.zeros(n)
+        if model.num_springs:
+            pairs = np.asarray(model.spring_pairs).reshape(-1, 2)
+            k = np.asarray(model.spring_stiffness, dtype=np.float64)
+            for col in (0, 1):
+                np.add.at(K, pairs[:, col], 2.0 * k)
+                np.add.at(C, pairs[:, col], 2.0 * model.spring_damping)
+        for term in model.force_terms:
+            if isinstance(term, QuadraticBending) and term.num_quads and term.k > 0:
+                g = np.abs(term.weights_np)  # (B, 4): ||w_i w_j I|| = |w_i| |w_j|
+            elif isinstance(term, DihedralBending) and term.num_quads and term.k > 0:
+                g = _dihedral_gradient_norms(model.mesh.vertices, term.quads_np)
+                x = np.asarray(model.mesh.vertices, dtype=np.float64)
+                q = term.quads_np
+                e = np.linalg.norm(x[q[:, 1]] - x[q[:, 0]], axis=1)
+                n1 = np.linalg.norm(np.cross(x[q[:, 2]] - x[q[:, 0]], x[q[:, 2]] - x[q[:, 1]]), axis=1)
+                n2 = np.linalg.norm(np.cross(x[q[:, 3]] - x[q[:, 1]], x[q[:, 3]] - x[q[:, 0]]), axis=1)
+                c = e * e / np.maximum(n1 + n2, 1e-300)
+                g = g * np.sqrt(term.k * c * 0.5 * np.cos(0.5 * term.rest_theta_np))[:, None]
+            else:
+                continue
+            row = g * g.sum(axis=1, keepdims=True)
+            for col in range(4):
+                np.add.at(K, term.quads_np[:, col], row[:, col])
+        return K, C
+
+    @staticmethod
+    def stable_dt(model) -> float:
+        """Stability bound of symplectic Euler for the model's stiff terms (seconds).
+
+        For one mode ``x'' = -omega^2 x - gamma x'`` symplectic Euler with an explicit dashpot is
+        stable for ``dt^2 omega^2 + 2 dt gamma < 4``, i.e. ``dt < 2/omega (sqrt(1 + zeta^2) -
+        zeta)`` with ``zeta = gamma / (2 omega)`` (``2/omega`` without damping). ``omega^2`` and
+        ``gamma`` are bounded by Gershgorin on ``M^-1 K`` and ``M^-1 C`` over the free vertices
+        (`stiffness_row_sums`: springs, dihedral or quadratic bending, spring dashpots), and both
+        maxima are used together (conservative when the stiffest and most damped modes differ).
+        """
         free = model.inverse_masses > 0
         if not free.any():
             return math.inf
-        lam = float((2.0 * ksum[free] * model.inverse_masses[free]).max())
+        K, C = SymplecticEuler.stiffness_row_sums(model)
+        w = model.inverse_masses[free]
+        lam = float((K[free] * w).max())
+        gamma = float((C[free] * w).max())
         if lam <= 0:
-            return math.inf
+            return math.inf if gamma <= 0 else 2.0 / gamma
         omega = math.sqrt(lam)
-        dt = 2.0 / omega
-        if model.spring_damping > 0:
-            kmax = float(model.spring_stiffness.max())
-            zeta = model.spring_damping * omega / (2.0 * kmax) if kmax > 0 else 0.0
-            dt *= math.sqrt(1.0 + zeta * zeta) - zeta
-        return dt
+        zeta = gamma / (2.0 * omega)
+        return 2.0 / omega * (math.sqrt(1.0 + zeta * zeta) - zeta)
 
     def suggest_substeps(self, frame_dt: float) -> int:
         """``ceil(frame_dt / (0.5 stable_dt))``: half the stability bound, for margin."""

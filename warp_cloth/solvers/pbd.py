@@ -46,12 +46,35 @@ distance constraint the XPBD update ``dlambda = (-C - a~ lambda)/(w_i + w_j + a~
 ``a~ = a/dt^2`` and ``lambda`` reset each step, so the converged stiffness is ``1/a`` whatever the
 iteration count and time step. ``compliance="springs"`` uses ``1/k`` of each spring of the model
 (the mass-spring physics). ``compliance=0`` is plain PBD; ``None`` (default) is plain PBD without
-the multiplier bookkeeping. In Jacobi mode the multiplier increment is scaled by the same
-averaging the positions get (``(w_i s_i + w_j s_j)/(w_i + w_j)`` with ``s = 1/(n + alpha)``), which
-is exact on vertices of equal valence and slightly off at boundaries.
+the multiplier bookkeeping. In Jacobi mode with multipliers each constraint takes its own share
+``s_e = 1/(max(n_i, n_j) + alpha)`` of its update ``dlambda`` (both positions and ``lambda`` move by
+``s_e dlambda``) and the blend adds the shares unscaled: at every vertex the shares sum to at most
+1, so the blend stays a sub-convex combination, and ``x - x* = M^-1 grad C^T lambda`` holds exactly,
+so the converged state is XPBD's (the exact spring equilibrium at rest). Averaging per vertex
+instead, as plain PBD does, moves the two ends of a constraint by different fractions ``1/n_i``,
+``1/n_j``; no single ``lambda`` then matches both, and the strip settled 5 % too soft at
+boundaries whatever the iteration count (tests/test_pbd.py checks the exact equilibrium).
 
 **Pins** have zero inverse mass: prediction and projection never move them; scripted pins are put
 at their targets by the base class before the step and keep the velocity it gives them.
+
+**Long-range attachments (tethers)**, Kim, Chentanez and Müller 2012, *Long Range Attachments: A
+Method to Simulate Inextensible Clothing in Computer Games*: every free vertex is tied to its
+``tether_pins`` (default 2) nearest pins, with rest length the geodesic distance on the rest mesh
+(`tether_anchors`: a multi-source Dijkstra with the fast-marching triangle update, exact on a
+planar rest mesh) times ``1 + tether_slack``. A tether is unilateral: when the vertex is farther
+from the pin's *current* position (scripted pins included) than its rest length, it is put back on
+that sphere; nearer, it is free. One thread per vertex projects its own tethers once per iteration,
+after the distance constraints (in place, no atomics). Without them the weight of a hanging cloth
+must travel up the whole chain of springs to the pins, one edge per Jacobi iteration, so at large
+steps the stretch grows every frame until the divergence guard stops the run (946 % at frame 40 of
+the default hanging scene at 1 substep x 10 iterations); with them the cloth can never be farther
+from its pins than its rest shape allows. They are on by default for plain PBD on a model with
+pins (``tethers=None``); not with ``compliance``, since an XPBD material is meant to stretch by
+its compliance (pass ``tethers=True`` to cap it at the rest length anyway). What remains is local
+stretch between neighbours, which depends on the iterations and substeps: measured on the default
+hanging scene (32 x 32, 60 fps, 2 s, 10 iterations) it is bounded at every step but above 10 % at 1
+and 2 substeps (README, *Methods*: the table).
 
 **Contact inside the iterations.** A correction in ``corrections`` that has a method
 ``project_positions(x, x_start, dt)`` is called inside every iteration, after the constraint
@@ -61,8 +84,9 @@ has ``begin_iterations`` is given the predicted positions first, once per step
 The base class still calls every correction's ``apply(state, x_start, dt)`` after the step
 (exact contact of every vertex, velocity impulse, friction, limits).
 
-Stability and limitations (honest): unconditionally stable in the sense that positions stay
-bounded, but not physically accurate: without compliance the stiffness depends on the iteration
+Stability and limitations (honest): positions of a pinned cloth stay bounded with the tethers
+(without pins or tethers PBD's stretch can grow without bound at large steps), but it is not
+physically accurate: without compliance the stiffness depends on the iteration
 count, the time step and the mesh resolution (T27), and Jacobi converges slowly on long chains
 (a sheet hanging from two corners stretches more with fewer substeps or iterations). Use
 substeps rather than iterations for stiffness (``default_substeps`` below), or compliance plus
@@ -119,12 +143,16 @@ def jacobi_distance_kernel(
     compliance: wp.array(dtype=float),
     lam: wp.array(dtype=float),
     inv_mass: wp.array(dtype=float),
-    vscale: wp.array(dtype=float),
+    escale: wp.array(dtype=float),
     inv_dt2: float,
     use_lambda: int,
     delta: wp.array(dtype=wp.vec3),
 ):
-    """One thread per distance constraint: scatter its correction into ``delta`` (atomics)."""
+    """One thread per distance constraint: scatter its correction into ``delta`` (atomics).
+
+    With multipliers (XPBD) the correction is scaled by the constraint's own share ``escale[e] =
+    1/(max(n_i, n_j) + alpha)`` and the multiplier advances by exactly what both ends realise
+    (the blend then adds ``delta`` unscaled); see the module docstring."""
     e = wp.tid()
     i = cons[e, 0]
     j = cons[e, 1]
@@ -140,9 +168,8 @@ def jacobi_distance_kernel(
         if l < 1.0e-12 or wsum <= 0.0:
             return
         at = compliance[e] * inv_dt2
-        dl = (rest[e] - l - at * lam[e]) / (wsum + at)
-        # the multiplier advances by what the averaged positions realise (see module docstring)
-        lam[e] = lam[e] + dl * (wi * vscale[i] + wj * vscale[j]) / wsum
+        dl = escale[e] * (rest[e] - l - at * lam[e]) / (wsum + at)
+        lam[e] = lam[e] + dl  # both ends move by w dl grad C: positions and lambda agree
         g = dl / l * d
     wp.atomic_add(delta, i, wi * g)
     wp.atomic_sub(delta, j, wj * g)
@@ -210,6 +237,31 @@ def gs_distance_kernel(
 
 
 @wp.kernel
+def tether_kernel(
+    x: wp.array(dtype=wp.vec3),
+    anchors: wp.array2d(dtype=wp.int32),
+    rest: wp.array2d(dtype=float),
+):
+    """One thread per vertex: each of its tethers (anchor pin, rest length) pulls it back onto the
+    sphere of that radius about the pin's current position when it is farther (unilateral; the
+    pin has zero inverse mass, so only the vertex moves). Only this thread writes ``x[i]``."""
+    i = wp.tid()
+    xi = x[i]
+    moved = int(0)
+    for t in range(anchors.shape[1]):
+        p = anchors[i, t]
+        if p >= 0:
+            d = xi - x[p]
+            l = wp.length(d)
+            r = rest[i, t]
+            if l > r:
+                xi = x[p] + d * (r / l)
+                moved = 1
+    if moved != 0:
+        x[i] = xi
+
+
+@wp.kernel
 def velocity_kernel(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
@@ -240,6 +292,94 @@ def _check_compliance(name, value, allow_springs: bool):
     return a
 
 
+def _unfold(xa, xb, xc, da, db):
+    """Distance at ``c`` from a source seen at distances ``da``, ``db`` from ``a``, ``b``: the
+    source is placed in the plane of the triangle (a, b, c), unfolded across the edge ``ab``, and
+    the straight line from it to ``c`` must cross that edge (else None). Exact on a planar mesh
+    (the fast-marching update of Kimmel and Sethian 1998, with the source point kept)."""
+    ex = [xb[0] - xa[0], xb[1] - xa[1], xb[2] - xa[2]]
+    L = math.sqrt(ex[0] * ex[0] + ex[1] * ex[1] + ex[2] * ex[2])
+    if L <= 0.0:
+        return None
+    ex = [t / L for t in ex]
+    ac = [xc[0] - xa[0], xc[1] - xa[1], xc[2] - xa[2]]
+    cx = ac[0] * ex[0] + ac[1] * ex[1] + ac[2] * ex[2]
+    cy2 = ac[0] * ac[0] + ac[1] * ac[1] + ac[2] * ac[2] - cx * cx
+    sx = (da * da - db * db + L * L) / (2.0 * L)
+    sy2 = da * da - sx * sx
+    if cy2 <= 0.0 or sy2 < 0.0:
+        return None
+    cy, sy = math.sqrt(cy2), -math.sqrt(sy2)
+    t = -sy / (cy - sy)
+    cross = sx + (cx - sx) * t
+    if cross < 0.0 or cross > L:
+        return None
+    return math.sqrt((cx - sx) ** 2 + (cy - sy) ** 2)
+
+
+def tether_anchors(vertices, triangles, sources, k: int = 2):
+    """The ``k`` nearest sources of every vertex by geodesic distance on the mesh, and the
+    distances (the long-range attachments of Kim, Chentanez and Müller 2012).
+
+    A multi-source Dijkstra over the mesh in which a vertex accepts one label per distinct
+    source, up to ``k``; a label reaches a vertex along an edge or across a triangle whose other
+    two vertices carry the same source, with the source unfolded into the triangle's plane
+    (`_unfold`), so distances are exact on a planar (or developable, unrolled) rest mesh, not the
+    up-to-8 % longer edge paths of a grid; elsewhere the first-order fast-marching approximation.
+    Paths do not pass through another source. Cost ``O(k T log(k T))`` for ``T`` triangles,
+    whatever the number of sources.
+
+    Returns ``(anchors, dist)``, (N, k) arrays: source vertex indices (-1 where fewer than ``k``
+    sources reach the vertex, e.g. in another connected component) and distances (inf there).
+    Sources themselves get no label.
+    """
+    import heapq
+
+    x = [tuple(map(float, p)) for p in np.asarray(vertices, dtype=np.float64)]
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    n = len(x)
+    # vertex -> incident triangles (CSR)
+    flat = tris.reshape(-1)
+    order = np.argsort(flat, kind="stable")
+    vt_start = np.searchsorted(flat[order], np.arange(n + 1)).tolist()
+    vt = (order // 3).tolist()
+    tl = tris.tolist()
+    anchors = np.full((n, k), -1, dtype=np.int64)
+    dist = np.full((n, k), np.inf)
+    label = [dict() for _ in range(n)]  # final labels: source -> distance
+    src = set(int(s) for s in np.asarray(sources).reshape(-1))
+    heap = [(0.0, s, s) for s in sorted(src)]
+    heapq.heapify(heap)
+
+    def length(i, j):
+        a, b = x[i], x[j]
+        return math.sqrt((a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2 + (a[2] - b[2]) ** 2)
+
+    while heap:
+        d, v, s = heapq.heappop(heap)
+        lv = label[v]
+        if s in lv or len(lv) >= k or (v in src and v != s):
+            continue
+        lv[s] = d
+        if v != s:
+            anchors[v, len(lv) - 1] = s
+            dist[v, len(lv) - 1] = d
+        for a in range(vt_start[v], vt_start[v + 1]):
+            t = tl[vt[a]]
+            others = [u for u in t if u != v]
+            for u, w in (others, others[::-1]):
+                lu = label[u]
+                if u in src or s in lu or len(lu) >= k:
+                    continue
+                heapq.heappush(heap, (d + length(v, u), u, s))  # along the edge
+                dw = label[w].get(s)
+                if dw is not None:  # across the triangle (v, w, u)
+                    du = _unfold(x[v], x[w], x[u], d, dw)
+                    if du is not None:
+                        heapq.heappush(heap, (du, u, s))
+    return anchors, dist
+
+
 class PositionBased(Solver):
     """Position-based dynamics, optionally compliant (XPBD). ``solver.step(state, dt)``.
 
@@ -256,6 +396,11 @@ class PositionBased(Solver):
         bending_compliance: ``None`` (default: no bending constraint) or a number ``>= 0`` in m/N:
             adds an across-edge distance constraint between the two vertices opposite every
             interior edge, with this XPBD compliance (0 = rigid).
+        tethers: long-range attachments to the pins (see the module docstring): ``None``
+            (default: on when the model has pins and ``compliance`` is None), True or False.
+        tether_pins: how many of the nearest pins each vertex is tied to (default 2).
+        tether_slack: tethers act beyond ``(1 + tether_slack)`` times the geodesic rest distance
+            (default 0: the cloth may not be farther from a pin than in its rest shape).
         corrections: limits / contact passes (see the module docstring for contact inside the
             iterations).
 
@@ -263,14 +408,18 @@ class PositionBased(Solver):
         default_substeps: substeps per frame the scene runner uses when none is given: 64 for
             Jacobi, 32 for Gauss-Seidel. Measured on the default hanging scene (1 m, 32 x 32 cells,
             0.15 kg/m^2, 60 fps, 10 iterations), these keep the maximum edge strain of the first
-            fall at about 3.7 % (Jacobi) and 2.9 % (Gauss-Seidel), settling under 1 %; 16 substeps
-            let Jacobi stretch 36 %. PBD stiffness comes from substeps more than iterations:
+            fall at about 1.3 % (Jacobi) and 2.2 % (Gauss-Seidel) with the default tethers (3.7 %
+            and 2.9 % without), settling under 1 %; 16 substeps let Jacobi stretch 6.1 % (36 %
+            without tethers). PBD stiffness comes from substeps more than iterations:
             1 iteration x 320 substeps gives 1.9 % at about 60 % of the cost (small steps).
             The count is not resolution-aware: on the finer 64 x 32-cell cloth of
-            ``warp-cloth bench pbd`` the same settings end 0.5 s at 10.9 % strain (explicit:
-            3.6 %); pass ``substeps`` (or a `warp_cloth.limits.StrainLimit`) there.
+            ``warp-cloth bench pbd`` the same settings ended 0.5 s at 10.9 % strain without
+            tethers (explicit: 3.6 %); with them 0.9 % (2.3 % at most, Gauss-Seidel 0.28 %).
         constraint_pairs: (C, 2) host copy of the constraints in the order they are stored (sorted
             by colour for Gauss-Seidel); ``color_offsets`` gives each colour's range.
+        tethers: whether tethers are on; ``num_tethers`` how many; ``tether_anchor_indices``
+            and ``tether_rest``: (N, k) host arrays of each vertex's pins (-1: none) and rest
+            lengths in metres.
     """
 
     name = "pbd"
@@ -278,6 +427,7 @@ class PositionBased(Solver):
 
     def __init__(self, model, *, iterations: int = 10, gauss_seidel: bool = False,
                  compliance=None, relaxation: float = 0.0, bending_compliance=None,
+                 tethers=None, tether_pins: int = 2, tether_slack: float = 0.0,
                  corrections=(), collision=None):
         super().__init__(model, corrections=corrections, collision=collision)
         if isinstance(iterations, bool) or int(iterations) != iterations or iterations < 1:
@@ -335,14 +485,51 @@ class PositionBased(Solver):
         self._compliance = wp.array(comp.astype(np.float32), dtype=float, device=d)
         self._lambda = wp.zeros(max(len(pairs), 1), dtype=float, device=d)
         self._count = wp.array(count.astype(np.float32), dtype=float, device=d)
-        # s_i = 1/(n_i + alpha), the share of a correction vertex i realises per Jacobi iteration
-        scale = np.where(count + a > 0, 1.0 / np.maximum(count + a, 1e-30), 0.0)
-        self._vscale = wp.array(scale.astype(np.float32), dtype=float, device=d)
+        # XPBD Jacobi: each constraint scaled by its own share 1/(max(n_i, n_j) + alpha), so the
+        # blend adds the corrections unscaled (a sub-convex combination at every vertex) and the
+        # multiplier stays consistent with the positions; plain PBD averages per vertex instead
+        if len(pairs):
+            escale = 1.0 / (np.maximum(count[pairs[:, 0]], count[pairs[:, 1]]) + a)
+        else:
+            escale = np.zeros(0)
+        self._escale = wp.array(escale.astype(np.float32), dtype=float, device=d)
+        if self.use_lambda:
+            self._blend_count = wp.array((count > 0).astype(np.float32), dtype=float, device=d)
+            self._blend_alpha = 0.0
+        else:
+            self._blend_count = self._count
+            self._blend_alpha = a
         self._delta = wp.zeros(n, dtype=wp.vec3, device=d)
         self._xp = wp.zeros(n, dtype=wp.vec3, device=d)
         self._f = wp.zeros(n, dtype=wp.vec3, device=d)
         # external forces: everything but the springs (they are constraints here)
         self._forces = [t for t in model.force_terms if not isinstance(t, SpringForce)]
+
+        # ---- long-range attachments (tethers) to the pins
+        if tethers is None:  # plain PBD with pins: its stretch is an artefact, the rest length is meant
+            tethers = len(model.pins) > 0 and self.compliance is None
+        if not isinstance(tethers, (bool, np.bool_)):
+            raise ValueError(f"tethers must be True, False or None, got {tethers!r}")
+        if isinstance(tether_pins, bool) or int(tether_pins) != tether_pins or tether_pins < 1:
+            raise ValueError(f"tether_pins must be a positive integer, got {tether_pins!r}")
+        sl = float(tether_slack)
+        if not (math.isfinite(sl) and sl >= 0.0):
+            raise ValueError(f"tether_slack must be a finite number >= 0, got {tether_slack!r}")
+        self.tether_pins = int(tether_pins)
+        self.tether_slack = sl
+        self.num_tethers = 0
+        self.tethers = bool(tethers) and len(model.pins) > 0
+        if self.tethers:
+            k = min(self.tether_pins, len(model.pins))
+            anchors, dist = tether_anchors(model.mesh.vertices, model.mesh.triangles, model.pins, k)
+            ok = anchors >= 0
+            self.num_tethers = int(ok.sum())
+            self.tethers = self.num_tethers > 0
+            rest_t = np.where(ok, dist * (1.0 + sl), 0.0)
+            self.tether_anchor_indices = anchors
+            self.tether_rest = rest_t
+            self._tether_anchor = wp.array(anchors.astype(np.int32), dtype=wp.int32, ndim=2, device=d)
+            self._tether_rest = wp.array(rest_t.astype(np.float32), dtype=float, ndim=2, device=d)
 
     # ------------------------------------------------------------------ pieces
     @property
@@ -369,14 +556,18 @@ class PositionBased(Solver):
                               [x, self._cons, self._rest, self._compliance, self._lambda,
                                m.inv_mass, inv_dt2, self.use_lambda, int(offs[c])], device=d)
             else:
-                last = finish_velocity and not projectors and it == iterations - 1
+                last = (finish_velocity and not projectors and not self.tethers
+                        and it == iterations - 1)
                 wp.launch(jacobi_distance_kernel, self.num_constraints,
                           [x, self._cons, self._rest, self._compliance, self._lambda, m.inv_mass,
-                           self._vscale, inv_dt2, self.use_lambda, self._delta], device=d)
+                           self._escale, inv_dt2, self.use_lambda, self._delta], device=d)
                 wp.launch(jacobi_blend_kernel, m.num_vertices,
-                          [x, v, self._xp, self._delta, self._count, m.inv_mass,
-                           self.relaxation, 1.0 / dt, int(last)], device=d)
+                          [x, v, self._xp, self._delta, self._blend_count, m.inv_mass,
+                           self._blend_alpha, 1.0 / dt, int(last)], device=d)
                 fused = fused or last
+            if self.tethers:
+                wp.launch(tether_kernel, m.num_vertices,
+                          [x, self._tether_anchor, self._tether_rest], device=d)
             for c in projectors:
                 c.project_positions(x, self._x_start, dt)
         return fused
@@ -388,7 +579,7 @@ class PositionBased(Solver):
         block; ``step`` does prediction + projection + velocity update.
         """
         its = self.iterations if iterations is None else int(iterations)
-        if self.num_constraints:
+        if self.num_constraints or self.tethers:
             self._iterate(x, x, dt, its, False)
         return x
 
@@ -401,7 +592,7 @@ class PositionBased(Solver):
                   [state.x, state.v, self._xp, self._f, m.inv_mass, wp.vec3(*m.gravity),
                    math.exp(-m.damping * dt), dt], device=d)
         fused = False
-        if self.num_constraints:
+        if self.num_constraints or self.tethers:
             fused = self._iterate(state.x, state.v, dt, self.iterations, True)
         if not fused:
             wp.launch(velocity_kernel, m.num_vertices,
@@ -413,4 +604,6 @@ class PositionBased(Solver):
         if self.compliance is not None:
             s += f", compliance {self.compliance}" if isinstance(self.compliance, str) else \
                 f", compliance {self.compliance:g} m/N"
+        if self.tethers:
+            s += f", {self.num_tethers} tethers"
         return s + ")"
