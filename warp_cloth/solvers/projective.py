@@ -366,8 +366,7 @@ class ProjectiveDynamics(Solver):
             round trip per iteration, so not capturable. ``linear`` is then unused.
         direct_max_vertices: refuse ``direct`` above this many vertices (memory ~ 8 n^2 bytes).
         contact_stiffness: ``kappa`` of the contact constraints, their weight over the inertia
-            block ``m/dt^2`` (default 1e4, ten times implicit Euler's: at 1e3 the under-converged
-            steps gained energy on impact; `warp_cloth.solvers.contact_coupling`).
+            block ``m/dt^2`` (default 1e3; `warp_cloth.solvers.contact_coupling`).
         corrections: limits run after each step (`Solver.add_correction`).
         collision: a `CollisionStage`: its contacts are constraints of every local step (their
             projection onto the free half-space) and their blocks enter the global matrix, so
