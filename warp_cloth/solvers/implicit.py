@@ -635,7 +635,7 @@ class ImplicitEuler(Solver):
         self._stats = {}
         # steps whose Newton iteration ended above ``tolerance``, inner solves that stopped at
         # their cap above theirs (host counts: both are known on the host in checked mode)
-        self._short = {"steps": 0, "new": 0, "last": (0.0, 0), "inner": 0, "inner_new": 0}
+        self._short = {"steps": 0, "new": 0, "last": (0.0, 0, False), "inner": 0, "inner_new": 0}
         self._lazy = None
         self.contact_stiffness = float(contact_stiffness)
         ContactCoupling._check(self.contact_stiffness)
@@ -765,6 +765,7 @@ class ImplicitEuler(Solver):
         fixed = not check and self.linear.capturable
         inner = 0
         inner_short = 0  # inner solves that stopped at their cap above their tolerance
+        stalled = False  # Newton stopped because an update moved less than step_tolerance
         done = 0
         info = {"residual": float("nan"), "fallback": False}
         trace = [] if self.trace else None
@@ -806,6 +807,7 @@ class ImplicitEuler(Solver):
                     trace[-1]["dx"] = moved
                     trace[-1]["step"] = float(step.numpy()[0])
                 if check and moved < self.step_tolerance:
+                    stalled = True
                     break  # stagnated (float32 floor): more iterations cannot lower the residual
         lazy = None
         if not measured:
@@ -830,7 +832,7 @@ class ImplicitEuler(Solver):
         if check and not self._stats["converged"]:
             self._short["steps"] += 1
             self._short["new"] += 1
-            self._short["last"] = (residual, done)
+            self._short["last"] = (residual, done, stalled)
         if inner_short:
             self._short["inner"] += inner_short
             self._short["inner_new"] += inner_short
@@ -849,9 +851,11 @@ class ImplicitEuler(Solver):
         out = []
         sh = self._short
         if sh["new"]:
-            r, k = sh["last"]
+            r, k, stalled = sh["last"]
+            why = (f"its updates fell below step_tolerance {self.step_tolerance:.2g} m" if stalled
+                   else f"{k} iterations, the cap")
             out.append(f"implicit: Newton stopped above its tolerance {self.tolerance:g} m in "
-                       f"{sh['new']} step(s) (last: residual {r:.3g} m after {k} iterations)")
+                       f"{sh['new']} step(s) (last: residual {r:.3g} m; {why})")
         if sh["inner_new"]:
             out.append(f"implicit: {sh['inner_new']} {self.linear_name} inner solve(s) stopped at "
                        f"{self.linear.iterations} iterations above their tolerance")
