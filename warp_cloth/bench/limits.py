@@ -34,6 +34,8 @@ CONFIGS = [
      {"newton_iterations": 2, "tolerance": None, "linear_tolerance": None}),
     ("pbd", "pbd", None, {}),
     ("pbd 4 substeps", "pbd", 4, {}),
+    ("pbd 1 substep", "pbd", 1, {}),
+    ("pbd 1 substep, 3 iterations", "pbd", 1, {"iterations": 3}),
     ("pd", "pd", None, {}),
     ("pd 1 step", "pd", 1, {}),
 ]
