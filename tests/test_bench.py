@@ -48,15 +48,41 @@ def test_tradeoff_end_to_end(tmp_path, monkeypatch):
     assert len(cached) == 1 and cached[0].startswith("ref_hanging_")
 
 
+def test_stability_classifier_on_synthetic_trajectories():
+    """Each class from a made-up trajectory: a cell is stable only when finite, without energy
+    gain and within the stretch factor of the reference; the first failing test wins."""
+    c = stability.classify
+    e_ok = [1.0, 0.9, 0.7, 0.65]  # dissipating
+    s_ok = [0.0, 0.01, 0.02, 0.015]
+    assert c(e_ok, s_ok, 0.012, 1.0) == ("S", None)  # 0.02 <= 2 x 0.012 + 0.001
+    # over-stretched: beyond twice the reference, from the first such frame
+    assert c(e_ok, [0.0, 0.01, 0.03, 0.02], 0.012, 1.0) == ("O", 2)
+    # a plausible-looking stretch with an energy rise is not stable: gains energy, frame 2
+    assert c([1.0, 0.9, 1.05, 0.8], s_ok, 0.012, 1.0) == ("E", 2)
+    assert c([1.0, 0.9, 1.009, 0.8], s_ok, 0.012, 1.0) == ("S", None)  # within 1 % of scale
+    assert c([1.0, 0.9, 1.05, 0.8], s_ok, 0.012, 10.0) == ("S", None)  # tolerance scales
+    # gains energy beats over-stretched; diverged beats both
+    assert c([1.0, 3.0, 9.0], [0.0, 0.5, 2.0], 0.01, 1.0) == ("E", 1)
+    assert c([1.0, 3.0, np.nan], [0.0, 0.5, np.nan], 0.01, 1.0) == ("D", 2)
+    assert c([1.0, 0.9], [0.0, 0.01], 0.01, 1.0, diverged_frame=7) == ("D", 7)
+    assert c([1.0, np.inf, 0.5], s_ok[:3], 0.01, 1.0) == ("D", 1)
+    # the floor keeps float32 noise at very stiff k from counting as over-stretched
+    assert c(e_ok, [0.0, 5e-4, 8e-4, 1e-4], 1e-6, 1.0) == ("S", None)
+    with pytest.raises(ValueError):
+        c(e_ok, s_ok, 0.01, 0.0)
+
+
 def test_stability_cells_follow_the_theory():
+    ref = stability.reference_strain(1e3, 1.0, 4, 0.1, ref_dt=1 / 500)
+    assert 0 < ref < 0.05
     # explicit: stable far below the bound, diverges at large k dt^2 / m
-    assert stability.run_cell("explicit", 1e3, 1 / 2000, 1.0, 4, 0.1, 0.1)["status"] == "S"
-    d = stability.run_cell("explicit", 1e7, 1 / 120, 1.0, 4, 0.1, 0.1)
+    assert stability.run_cell("explicit", 1e3, 1 / 2000, 1.0, 4, 0.1, ref)["status"] == "S"
+    d = stability.run_cell("explicit", 1e7, 1 / 120, 1.0, 4, 0.1, ref)
     assert d["status"] == "D" and d["frame"] >= 1
-    # implicit Euler does not diverge there
-    assert stability.run_cell("implicit", 1e7, 1 / 120, 1.0, 4, 0.1, 0.1)["status"] in ("S", "O")
-    # a soft cloth is flagged as over-stretched, not as diverged
-    assert stability.run_cell("explicit", 1e1, 1 / 2000, 1.0, 4, 0.2, 0.01)["status"] == "O"
+    # implicit Euler with its line search neither diverges nor gains energy at k = 1e9, dt = 1/30
+    ref9 = stability.reference_strain(1e9, 1.0, 4, 0.1, ref_dt=1 / 500)
+    cell = stability.run_cell("implicit", 1e9, 1 / 30, 1.0, 4, 0.1, ref9)
+    assert cell["status"] in ("S", "O") and cell["energy_gain"] <= 0.01
 
 
 def test_checker_masses_keep_total_and_ratio():
@@ -71,10 +97,11 @@ def test_checker_masses_keep_total_and_ratio():
 
 def test_stability_end_to_end(tmp_path):
     assert stability.main(["--methods", "explicit", "--res", "3", "--duration", "0.05", "--quick",
+                           "--ks", "1e3,1e7", "--ref-dt", "0.002", "--ratios", "1,10000",
                            "--out-dir", str(tmp_path)]) == 0
     rows = list(csv.DictReader(open(tmp_path / "stability.csv")))
-    assert len(rows) == 4 * 3 * 2
-    assert {r["status"] for r in rows} <= {"S", "O", "D"}
+    assert len(rows) == 2 * 3 * 2
+    assert {r["status"] for r in rows} <= {"S", "O", "E", "D"}
     assert "D" in {r["status"] for r in rows} and "S" in {r["status"] for r in rows}
     assert (tmp_path / "stability.png").stat().st_size > 1000
 

@@ -46,8 +46,8 @@ def test_strain_limit_one_one_is_exactly_a_pbd_pass(gs, relaxation):
     model = hanging_model(res=8)
     x0 = perturbed(model, scale=1.0, noise=0.02)
     st = state_at(model, x0)
-    StrainLimit(model, 1.0, 1.0, iterations=5, relaxation=relaxation,
-                gauss_seidel=gs).apply(st, None, 0.01)
+    StrainLimit(model, 1.0, 1.0, iterations=5, relaxation=relaxation, gauss_seidel=gs,
+                tolerance=None, tethers=0, over_relaxation=1.0).apply(st, None, 0.01)
     x = wp.array(x0.astype(np.float32), dtype=wp.vec3)
     PositionBased(model, iterations=5, relaxation=relaxation, gauss_seidel=gs,
                    tethers=False).project(x)  # the spring pass alone
@@ -85,7 +85,8 @@ def test_strain_limit_brings_every_edge_into_bounds():
 
     def violation(its, gs):
         st = state_at(model, x0)
-        StrainLimit(model, 0.95, 1.05, iterations=its, gauss_seidel=gs).apply(st, None, 0.01)
+        StrainLimit(model, 0.95, 1.05, iterations=its, gauss_seidel=gs, tolerance=None,
+                    over_relaxation=1.0).apply(st, None, 0.01)
         r = edge_strains(model, st.x.numpy()) + 1.0
         return max(0.95 - r.min(), r.max() - 1.05, 0.0), st
 
@@ -104,7 +105,7 @@ def test_strain_limit_is_mass_weighted_and_corrects_velocity(gs):
     x0 = model.mesh.vertices.copy()
     x0[1] = [1.5, 0.0, 0.0]  # edge (0, 1) at ratio 1.5, edge (1, 2) at 1.31, (0, 2) at 1
     st = state_at(model, x0)
-    lim = StrainLimit(model, 0.0, 1.35, iterations=1, gauss_seidel=gs)
+    lim = StrainLimit(model, 0.0, 1.35, iterations=1, gauss_seidel=gs, over_relaxation=1.0)
     lim.apply(st, None, 0.5)
     x, v = st.x.numpy().astype(np.float64), st.v.numpy().astype(np.float64)
     assert np.linalg.norm(x[1] - x[0]) == pytest.approx(1.35, abs=1e-6)  # a lone edge: exact
@@ -114,7 +115,8 @@ def test_strain_limit_is_mass_weighted_and_corrects_velocity(gs):
     # a pinned end stays: only the other moves
     m2 = one_triangle(pins=[1])
     st2 = state_at(m2, x0)
-    StrainLimit(m2, 0.0, 1.35, iterations=1, gauss_seidel=gs).apply(st2, None, 0.5)
+    StrainLimit(m2, 0.0, 1.35, iterations=1, gauss_seidel=gs,
+                over_relaxation=1.0).apply(st2, None, 0.5)
     x2 = st2.x.numpy()
     np.testing.assert_array_equal(x2[1], x0[1].astype(np.float32))
     np.testing.assert_allclose(x2[0], [0.15, 0.0, 0.0], atol=1e-6)
@@ -157,7 +159,7 @@ def test_area_limit_on_a_grid_converges():
     x0 = model.mesh.vertices * np.array([1.5, 1.0, 1.3]) + 0.005 * rng.standard_normal((49, 3))
     x0[model.pins] = model.mesh.vertices[model.pins]
     st = state_at(model, x0)
-    AreaLimit(model, 0.9, 1.1, iterations=300).apply(st, None, 0.01)
+    AreaLimit(model, 0.9, 1.1, iterations=300, tolerance=None).apply(st, None, 0.01)
     ratio = model.mesh.triangle_areas(st.x.numpy()) / model.mesh.triangle_areas()
     assert ratio.min() > 0.9 - 5e-3 and ratio.max() < 1.1 + 5e-3
 

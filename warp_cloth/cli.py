@@ -33,7 +33,7 @@ CONTACT_SCENES = ["drape", "table", "spin", "mesh", "thin", "fold", "stack"]
 #: scenes whose default solver is not explicit Euler (self-collision at its many substeps is slow)
 SCENE_SOLVERS = {"fold": "implicit", "twist": "implicit", "stack": "implicit"}
 CONTACT_OPTIONS = ["friction", "restitution", "thickness"]
-BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability", "ccd",
+BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability", "ccd", "limits",
                "selfcollision", "render", "usd"]
 
 # option -> (solver option name, solvers that accept it)

@@ -57,6 +57,9 @@ class RunStats:
     # crossing (edge, triangle) pairs in one frame (None: not checked)
     crossing_frames: int | None = None
     max_crossings: int | None = None
+    #: frames in which a step stopped short of a tolerance (an unconverged solve, a limit out of
+    #: sweeps: `Solver.frame_end`), each reported on stderr with the frame unless quiet
+    short_frames: int = 0
     extra: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -74,6 +77,8 @@ class RunStats:
             + ("" if self.crossing_frames is None else
                f"; self-intersection: {self.crossing_frames} of {self.frames} frames "
                f"(at most {self.max_crossings} crossing pairs)")
+            + (f"; {self.short_frames} frames with a step short of its tolerance"
+               if self.short_frames else "")
             + (f"; wrote {self.out}" if self.out else "")
         )
 
@@ -224,6 +229,7 @@ class Scene:
         up = model.up_index  # heights along the mesh's up axis
         checker = None
         crossing_frames, max_crossings = 0, 0
+        short_frames = 0
         if check_intersections:
             from .collision.check import SelfIntersectionChecker
 
@@ -281,6 +287,11 @@ class Scene:
                             bar.note(f"warning: frame {frame}: {msg}")
                         if regrown:
                             graph = None  # arrays were reallocated: record the graph again
+                if frame > 0 and hasattr(solver, "frame_end"):
+                    msgs = solver.frame_end()
+                    short_frames += bool(msgs)
+                    for msg in msgs if not quiet else ():
+                        bar.note(f"warning: frame {frame}: {msg}")
                 if checker is not None:
                     k = checker(state.x)
                     if k:
@@ -311,6 +322,7 @@ class Scene:
             out=os.fspath(out) if out is not None else None, extra=dict(solver.stats),
             crossing_frames=crossing_frames if checker is not None else None,
             max_crossings=max_crossings if checker is not None else None,
+            short_frames=short_frames,
         )
 
 

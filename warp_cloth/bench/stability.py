@@ -1,18 +1,29 @@
-"""``warp-cloth bench stability``: where each method stays stable.
+"""``warp-cloth bench stability``: where each method stays stable, by a test that cannot be fooled.
 
-A grid over spring stiffness k (1e1 to 1e7 N/m), time step dt (1/2000 to 1/10 s) and vertex
-mass ratio (uniform, and a checkerboard of heavy and light vertices with ``--ratio`` = 1000) for
-every available method, on the hanging cloth. Each cell runs ``--duration`` simulated seconds
-with that dt per solver step and is classified by the solvers' own divergence guard (the scene
-runner's `SimulationDiverged`, never a crash):
+A grid over spring stiffness k (1e1 to 1e9 N/m), time step dt (1/2000 to 1/10 s per solver step)
+and vertex mass ratio (uniform, and checkerboards of heavy and light vertices with the same total
+mass: 100:1 and 10,000:1 by default) for every available method, on the hanging cloth (pinned at
+two corners, released at rest: nothing outside does work on it, since the pins do not move and
+gravity is part of the potential energy). Each cell runs ``--duration`` simulated seconds and
+records every frame's total energy (kinetic + gravity + springs) and largest edge strain. It is
+then classified by `classify`, first match wins:
 
-- ``S``: stable (finite, every edge strain under ``--strain-bound``);
-- ``Ofr``: stable but over-stretched (strain above ``--strain-bound``, 10 % by default) from frame fr on;
-- ``Dfr``: diverged (non-finite, or strain above 1000 %) at frame fr.
+- ``D``: diverged - non-finite positions, or strain above 1000 % (the runner's guard);
+- ``E``: gains energy - the total energy rose above its start by more than ``--energy-tol``
+  (default 1 %) of ``M g size`` (the energy a drop of its own size releases). The scene has no
+  external work, and every method here is meant to be dissipative or conservative, so a rise is a
+  numerical defect, however plausible the motion looks;
+- ``O``: over-stretched - the largest strain exceeded ``--stretch-factor`` (default 2) times the
+  *converged reference's* plus 0.1 % (absolute, for float32 noise at very stiff k). The reference
+  for (k, mass ratio) is implicit Euler with its line search at dt = ``--ref-dt`` (default 1/2000 s)
+  and a Newton tolerance of 1e-6 m, over the same duration;
+- ``S``: stable - finite, no energy gained, stretch within the factor of the reference.
 
-Outputs (``--out-dir``): ``stability.csv``, ``stability.md`` (one table per method and mass
-ratio), and with matplotlib ``stability.png`` (heat maps). ``--quick`` is a small grid that
-finishes in under two minutes.
+The letter is followed by the first frame where its test failed (``D12``, ``E3``, ``O5``).
+Outputs (``--out-dir``): ``stability.csv`` (with every cell's max strain, energy gain and the
+reference strain), ``stability.md`` (one table per method and mass ratio), and with matplotlib
+``stability.png``. ``--quick`` is a reduced grid (k 1e1, 1e3, 1e5, 1e7, 1e9; dt 1/2000, 1/120,
+1/30; mass ratios 1 and 1e4; 6 x 6 cells; 0.25 s per cell).
 """
 
 from __future__ import annotations
@@ -28,10 +39,44 @@ import numpy as np
 from ..util import quiet_warp
 from .harness import have_matplotlib, write_csv
 
-FULL_K = [1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7]
+FULL_K = [1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9]
 FULL_DT = [1 / 2000, 1 / 500, 1 / 120, 1 / 30, 1 / 10]
-QUICK_K = [1e1, 1e3, 1e5, 1e7]
-QUICK_DT = [1 / 2000, 1 / 120, 1 / 10]
+QUICK_K = [1e1, 1e3, 1e5, 1e7, 1e9]
+QUICK_DT = [1 / 2000, 1 / 120, 1 / 30]
+#: the classes, in the order `classify` tests them
+CLASSES = {"D": "diverged", "E": "gains energy", "O": "over-stretched", "S": "stable"}
+#: absolute strain added to the reference's times the factor (float32 noise at very stiff k)
+STRETCH_FLOOR = 1e-3
+GRAVITY = 9.81
+
+
+def classify(energies, strains, ref_strain: float, energy_scale: float, *,
+             diverged_frame: int | None = None, energy_tol: float = 0.01,
+             stretch_factor: float = 2.0, stretch_floor: float = STRETCH_FLOOR):
+    """Classify one cell from its per-frame records. Returns ``(status, frame)``.
+
+    ``energies[f]`` and ``strains[f]``: total energy (J) and largest edge strain of frame ``f``
+    (frame 0 the start) for the frames that ran; ``diverged_frame``: the frame the divergence
+    guard stopped the run at, or None. ``energy_scale``: J; a rise of ``energy_tol`` times it
+    over the start counts as a gain. A non-finite record counts as divergence at that frame.
+    """
+    e = np.asarray(energies, dtype=np.float64)
+    s = np.asarray(strains, dtype=np.float64)
+    bad = np.flatnonzero(~np.isfinite(e) | ~np.isfinite(s))
+    if diverged_frame is not None or len(bad):
+        f = diverged_frame if diverged_frame is not None else int(bad[0])
+        if len(bad):
+            f = min(f, int(bad[0]))
+        return "D", f
+    if not (math.isfinite(energy_scale) and energy_scale > 0):
+        raise ValueError(f"energy_scale must be > 0 J, got {energy_scale!r}")
+    gain = np.flatnonzero(e - e[0] > energy_tol * energy_scale)
+    if len(gain):
+        return "E", int(gain[0])
+    over = np.flatnonzero(s > stretch_factor * ref_strain + stretch_floor)
+    if len(over):
+        return "O", int(over[0])
+    return "S", None
 
 
 def checker_masses(res: int, density: float, ratio: float, size: float = 1.0):
@@ -46,7 +91,9 @@ def checker_masses(res: int, density: float, ratio: float, size: float = 1.0):
     return m * w * (m.sum() / (m * w).sum())
 
 
-def run_cell(method, k, dt, ratio, res, duration, bound, density=0.15):
+def simulate(method, k, dt, ratio, res, duration, density=0.15, solver_options=None):
+    """Run one cell; per-frame energies and strains, the divergence frame (or None), seconds."""
+    from ..diagnostics import Meter
     from ..errors import SimulationDiverged
     from ..scenes import build_scene
 
@@ -55,25 +102,46 @@ def run_cell(method, k, dt, ratio, res, duration, bound, density=0.15):
     frames = max(3, int(round(duration * fps)) + 1)
     masses = None if ratio == 1 else checker_masses(res, density, ratio)
     scene = build_scene("hanging", solver=method, res=res, stiffness=k, density=density,
-                        masses=masses, fps=fps, frames=frames, substeps=substeps, strain_bound=10.0)
-    over = [None]
+                        masses=masses, fps=fps, frames=frames, substeps=substeps,
+                        strain_bound=10.0, solver_options=solver_options)
+    meter = Meter(scene.model)
+    energies, strains = [], []
 
     def on_frame(f, state):
-        if over[0] is None and f > 0:
-            x = state.x.numpy()
-            e = scene.model.mesh.edges
-            s = np.abs(np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1) / scene.model.spring_rest[: len(e)] - 1)
-            if s.max() > bound:
-                over[0] = f
+        m = meter(state, energy=True)
+        energies.append(m.energy if m.finite else math.nan)
+        strains.append(m.max_strain if m.finite else math.nan)
 
     t0 = time.perf_counter()
+    div = None
     try:
-        st = scene.run(None, quiet=True, on_frame=on_frame)
+        scene.run(None, quiet=True, energy=False, on_frame=on_frame)
     except SimulationDiverged as e:
-        return {"status": "D", "frame": e.frame, "max_strain": e.max_strain, "seconds": time.perf_counter() - t0}
-    status = "S" if over[0] is None else "O"
-    return {"status": status, "frame": over[0], "max_strain": st.max_strain,
-            "seconds": time.perf_counter() - t0}
+        div = e.frame
+    mass = float(scene.model.masses.sum())
+    return energies, strains, div, time.perf_counter() - t0, mass * GRAVITY * 1.0
+
+
+def reference_strain(k, ratio, res, duration, ref_dt=1 / 2000, density=0.15) -> float:
+    """Largest strain of the converged reference: implicit Euler (line search) at ``ref_dt``,
+    Newton to 1e-6 m."""
+    _, strains, div, _, _ = simulate("implicit", k, ref_dt, ratio, res, duration, density,
+                                     solver_options={"tolerance": 1e-6, "newton_iterations": 30})
+    if div is not None or not np.all(np.isfinite(strains)):
+        raise RuntimeError(f"the stability reference diverged at k={k:g}, ratio={ratio:g}")
+    return float(np.max(strains))
+
+
+def run_cell(method, k, dt, ratio, res, duration, ref_strain, density=0.15, energy_tol=0.01,
+             stretch_factor=2.0):
+    energies, strains, div, secs, scale = simulate(method, k, dt, ratio, res, duration, density)
+    status, frame = classify(energies, strains, ref_strain, scale, diverged_frame=div,
+                             energy_tol=energy_tol, stretch_factor=stretch_factor)
+    fin = [s for s in strains if math.isfinite(s)]
+    efin = [e for e in energies if math.isfinite(e)]
+    return {"status": status, "frame": frame, "max_strain": max(fin) if fin else math.nan,
+            "energy_gain": (max(efin) - efin[0]) / scale if efin else math.nan,
+            "ref_strain": ref_strain, "seconds": secs}
 
 
 def fmt_dt(dt):
@@ -87,15 +155,15 @@ def plot(path, cells, methods, ks, dts, ratios):
     import matplotlib.pyplot as plt
     from matplotlib.colors import ListedColormap
 
-    cmap = ListedColormap(["#2ca02c", "#ffbf00", "#d62728"])  # S, O, D
-    code = {"S": 0, "O": 1, "D": 2}
-    fig, axes = plt.subplots(len(ratios), len(methods), figsize=(3.0 * len(methods) + 1, 2.6 * len(ratios) + 0.6),
-                             squeeze=False)
+    cmap = ListedColormap(["#2ca02c", "#ffbf00", "#9467bd", "#d62728"])  # S, O, E, D
+    code = {"S": 0, "O": 1, "E": 2, "D": 3}
+    fig, axes = plt.subplots(len(ratios), len(methods),
+                             figsize=(3.0 * len(methods) + 1, 2.6 * len(ratios) + 0.6), squeeze=False)
     for a, ratio in enumerate(ratios):
         for b, m in enumerate(methods):
             ax = axes[a][b]
             grid = np.array([[code[cells[(m, k, dt, ratio)]["status"]] for dt in dts] for k in ks])
-            ax.imshow(grid, cmap=cmap, vmin=0, vmax=2, origin="lower", aspect="auto")
+            ax.imshow(grid, cmap=cmap, vmin=0, vmax=3, origin="lower", aspect="auto")
             ax.set_xticks(range(len(dts)), [fmt_dt(d) for d in dts], fontsize=7)
             ax.set_yticks(range(len(ks)), [f"{k:.0e}" for k in ks], fontsize=7)
             ax.set_title(f"{m}, mass ratio {ratio:g}", fontsize=9)
@@ -103,7 +171,8 @@ def plot(path, cells, methods, ks, dts, ratios):
                 ax.set_ylabel("k [N/m]")
             if a == len(ratios) - 1:
                 ax.set_xlabel("dt [s]")
-    fig.suptitle("green: stable, amber: over-stretched, red: diverged", fontsize=9)
+    fig.suptitle("green: stable, amber: over-stretched (vs converged reference), "
+                 "purple: gains energy, red: diverged", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -114,11 +183,21 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--methods", default=None, help="comma list (default: all available)")
     p.add_argument("--res", type=int, default=None, help="cells per side (default 8, quick 6)")
-    p.add_argument("--duration", type=float, default=None, help="simulated seconds (default 1, quick 0.25)")
-    p.add_argument("--ratio", type=float, default=1000.0, help="heavy/light vertex mass ratio")
-    p.add_argument("--strain-bound", type=float, default=0.1, help="over-stretch threshold (0.1 = 10 %%)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="simulated seconds (default 1, quick 0.25)")
+    p.add_argument("--ratios", default=None,
+                   help="comma list of heavy/light vertex mass ratios (default 1,100,10000; "
+                        "quick 1,10000)")
+    p.add_argument("--ks", default=None, help="comma list of stiffnesses in N/m (overrides)")
+    p.add_argument("--dts", default=None, help="comma list of steps in s, e.g. 1/2000,1/30")
+    p.add_argument("--energy-tol", type=float, default=0.01,
+                   help="energy gain allowed, as a fraction of M g size (default 0.01)")
+    p.add_argument("--stretch-factor", type=float, default=2.0,
+                   help="over-stretched above this times the reference's strain (+0.1 %%)")
+    p.add_argument("--ref-dt", type=float, default=1 / 2000, help="reference step (s)")
     p.add_argument("--out-dir", default="bench_out")
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--device", default=None)
     args = p.parse_args(argv)
     quiet_warp()
     from ..solvers import available
@@ -128,36 +207,80 @@ def main(argv=None) -> int:
     bad = [m for m in methods if m not in avail]
     if bad:
         p.error(f"methods {bad} not available; available: {avail}")
-    if not (args.ratio >= 1):
-        p.error("--ratio must be >= 1")
+
+    def floats(text, what):
+        try:
+            out = [float(t.split("/")[0]) / float(t.split("/")[1]) if "/" in t else float(t)
+                   for t in text.split(",")]
+        except Exception:
+            p.error(f"--{what}: a comma list of numbers, got {text!r}")
+        if not out or not all(math.isfinite(v) and v > 0 for v in out):
+            p.error(f"--{what}: positive numbers, got {text!r}")
+        return out
+
+    ratios = floats(args.ratios or ("1,10000" if args.quick else "1,100,10000"), "ratios")
+    if not all(r >= 1 for r in ratios):
+        p.error("--ratios must be >= 1")
+    ks = floats(args.ks, "ks") if args.ks else (QUICK_K if args.quick else FULL_K)
+    dts = floats(args.dts, "dts") if args.dts else (QUICK_DT if args.quick else FULL_DT)
+    if not (args.energy_tol > 0 and args.stretch_factor >= 1 and args.ref_dt > 0):
+        p.error("--energy-tol and --ref-dt must be > 0, --stretch-factor >= 1")
     res = args.res or (6 if args.quick else 8)
     duration = args.duration or (0.25 if args.quick else 1.0)
-    ks, dts = (QUICK_K, QUICK_DT) if args.quick else (FULL_K, FULL_DT)
-    ratios = [1.0, args.ratio]
     os.makedirs(args.out_dir, exist_ok=True)
+    tty = sys.stderr.isatty()
+    t0 = time.perf_counter()
+    refs = {}
+    for ratio in ratios:
+        for k in ks:
+            if tty:
+                sys.stderr.write(f"\rreference k={k:.0e} ratio={ratio:g}      ")
+                sys.stderr.flush()
+            refs[(k, ratio)] = reference_strain(k, ratio, res, duration, args.ref_dt)
     cells = {}
     total = len(methods) * len(ks) * len(dts) * len(ratios)
-    t0 = time.perf_counter()
     n = 0
     for m in methods:
         for ratio in ratios:
             for k in ks:
                 for dt in dts:
                     n += 1
-                    if sys.stderr.isatty():
-                        sys.stderr.write(f"\r[{n}/{total}] {m} k={k:.0e} dt={fmt_dt(dt)} ratio={ratio:g}     ")
+                    if tty:
+                        sys.stderr.write(f"\r[{n}/{total}] {m} k={k:.0e} dt={fmt_dt(dt)} "
+                                         f"ratio={ratio:g}     ")
                         sys.stderr.flush()
-                    cells[(m, k, dt, ratio)] = run_cell(m, k, dt, ratio, res, duration, args.strain_bound)
-    if sys.stderr.isatty():
+                    cells[(m, k, dt, ratio)] = run_cell(m, k, dt, ratio, res, duration,
+                                                        refs[(k, ratio)], energy_tol=args.energy_tol,
+                                                        stretch_factor=args.stretch_factor)
+    if tty:
         sys.stderr.write("\n")
-    rows = [{"method": m, "stiffness": k, "dt": dt, "mass_ratio": r, **c} for (m, k, dt, r), c in cells.items()]
+    rows = [{"method": m, "stiffness": k, "dt": dt, "mass_ratio": r, **c}
+            for (m, k, dt, r), c in cells.items()]
     write_csv(os.path.join(args.out_dir, "stability.csv"), rows)
+    cmd = (f"warp-cloth bench stability --res {res} --duration {duration:g} --ratios "
+           f"{','.join(f'{r:g}' for r in ratios)} --ks {','.join(f'{k:g}' for k in ks)} --dts "
+           f"{','.join(fmt_dt(d) for d in dts)}" + (" --quick" if args.quick else ""))
     md = [f"# Stability map: hanging cloth, {res}x{res} cells, {duration:g} s per cell\n",
-          f"Command: `warp-cloth bench stability --res {res} --duration {duration:g} --ratio {args.ratio:g} "
-          f"--strain-bound {args.strain_bound:g}{' --quick' if args.quick else ''}`\n",
-          f"S = stable; O<f> = stable but strain above {100 * args.strain_bound:g} % from frame f; "
-          f"D<f> = diverged (non-finite or strain above 1000 %) at frame f. Rows: stiffness k [N/m]; "
-          f"columns: dt [s] per solver step; mass ratio = heavy/light checkerboard.\n"]
+          f"Command: `{cmd}` ({time.perf_counter() - t0:.0f} s on this machine)\n",
+          f"S = stable; O<f> = over-stretched: strain above {args.stretch_factor:g} x the "
+          f"converged reference's + {100 * STRETCH_FLOOR:g} % from frame f; E<f> = gains energy: "
+          f"total energy above its start by more than {100 * args.energy_tol:g} % of M g (1 m) "
+          f"from frame f; D<f> = diverged (non-finite or strain above 1000 %) at frame f. Rows: "
+          f"stiffness k [N/m]; columns: dt [s] per solver step; mass ratio = heavy/light "
+          f"checkerboard. Reference: implicit Euler at dt = {fmt_dt(args.ref_dt)} s, Newton to "
+          f"1e-6 m.\n",
+          "\n**Cells per class** (stable / over-stretched / gains energy / diverged)\n",
+          "| method | " + " | ".join(f"mass ratio {r:g}" for r in ratios) + " |",
+          "|---|" + "---|" * len(ratios)]
+    for m in methods:
+        counts = []
+        for ratio in ratios:
+            st = [cells[(m, k, dt, ratio)]["status"] for k in ks for dt in dts]
+            counts.append(" / ".join(str(st.count(c)) for c in "SOED"))
+        md.append(f"| {m} | " + " | ".join(counts) + " |")
+    for ratio in ratios:
+        md.append(f"\nReference max strain, mass ratio {ratio:g}: " + ", ".join(
+            f"k={k:.0e}: {100 * refs[(k, ratio)]:.3g} %" for k in ks))
     for m in methods:
         for ratio in ratios:
             md.append(f"\n**{m}**, mass ratio {ratio:g}\n")

@@ -5,7 +5,9 @@ A step is composed, in this order, of only the parts the scene uses (GUIDE.md):
     pins to their end-of-step targets -> method (external forces + integrator/solver, which
     respects the current contact set) -> corrections (strain/area limits)
     -> collision stage (`warp_cloth.collision.CollisionStage.resolve`: continuous test,
-       projection, impulse) -> time += dt
+       projection, impulse) -> limits again with the contact projection inside their sweeps
+       (``after_contact``: only where friction's response left an element outside its bound)
+       -> time += dt
 
 Each correction changes positions and adds the same change divided by dt to the velocities
 (``v += (x_new - x_old) / dt``, the position-based velocity update of the notes, L1344), so
@@ -145,8 +147,27 @@ class Solver:
             c.apply(state, self._x_start, dt)
         if stage is not None:
             stage.resolve(state, self._x_start, dt)
+            for c in self.corrections:  # what friction's response stretched, within contact
+                after = getattr(c, "after_contact", None)
+                if after is not None:
+                    after(state, self._x_start, dt, stage)
         wp.launch(common.advance_time_kernel, 1, [state.time, dt], device=self.device)
         return state
+
+    def frame_end(self) -> list:
+        """Messages (strings) about the steps since the last call that stopped short of a
+        tolerance: the method's own (`_frame_messages`: an unconverged Newton or inner solve)
+        and each correction's (a limit that ran out of sweeps). Host reads, once a frame: the
+        scene runner calls it after every frame and prints each message as a warning."""
+        out = list(self._frame_messages())
+        for c in self.corrections:
+            fe = getattr(c, "frame_end", None)
+            if fe is not None:
+                out.extend(fe())
+        return out
+
+    def _frame_messages(self) -> list:
+        return []
 
     def _advance(self, state, dt: float):  # pragma: no cover - abstract
         raise NotImplementedError

@@ -69,14 +69,10 @@ from ..util import positive_finite
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
-__all__ = ["ContactCoupling", "DEFAULT_CONTACT_STIFFNESS", "PD_CONTACT_STIFFNESS", "DEFAULT_FRICTION_VELOCITY", "BATCH"]
+__all__ = ["ContactCoupling", "DEFAULT_CONTACT_STIFFNESS", "DEFAULT_FRICTION_VELOCITY", "BATCH"]
 
 #: kappa: the contact term's stiffness over the inertia block ``m/dt^2``
 DEFAULT_CONTACT_STIFFNESS = 1.0e3
-#: projective dynamics' default: the same. (1e4 removed the energy PD's 10 under-converged
-#: iterations gain on impact on the 32x32 table (+0.011 J in a frame at 1e3), but not at 12x12,
-#: and the stiffer contact held a falling fold up: measured, not adopted)
-PD_CONTACT_STIFFNESS = DEFAULT_CONTACT_STIFFNESS
 #: m/s; friction's smoothing speed (IPC's eps_v): static friction holds a vertex to this creep
 DEFAULT_FRICTION_VELOCITY = 1.0e-4
 #: record entries per thread (a thread costs its set-up on the CPU whether its entries exist)

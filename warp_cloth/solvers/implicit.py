@@ -483,7 +483,11 @@ class ImplicitEuler(Solver):
             when a Newton update moves no vertex farther than this (the remaining position error
             is then far smaller; float32 rounding alone moves vertices by about
             ``1e-7 max|x|``, so a cloth that travels far from its rest place may need more).
-            ``stats["converged"]`` tells whether ``r < tolerance`` was reached.
+            ``stats["converged"]`` tells whether ``r < tolerance`` was reached; a step that
+            ends above it is counted (``stats["unconverged_steps"]``) and reported by
+            `frame_end` (the scene runner prints a warning with the frame), and so is an inner
+            solve that stops at its cap above its tolerance (``stats["inner_short_total"]``).
+            ``tolerance=None`` makes no convergence claim.
         linear: inner solver, ``"cg"``, ``"jacobi"`` or ``"chebyshev"``.
         linear_iterations: maximum inner iterations per Newton iteration (default 200 for CG and
             Chebyshev, 400 for Jacobi).
@@ -629,6 +633,9 @@ class ImplicitEuler(Solver):
         self.capturable = (self.capturable and tolerance is None and self.linear.capturable
                            and not self.trace)
         self._stats = {}
+        # steps whose Newton iteration ended above ``tolerance``, inner solves that stopped at
+        # their cap above theirs (host counts: both are known on the host in checked mode)
+        self._short = {"steps": 0, "new": 0, "last": (0.0, 0, False), "inner": 0, "inner_new": 0}
         self._lazy = None
         self.contact_stiffness = float(contact_stiffness)
         ContactCoupling._check(self.contact_stiffness)
@@ -757,6 +764,8 @@ class ImplicitEuler(Solver):
         check = self.tolerance is not None
         fixed = not check and self.linear.capturable
         inner = 0
+        inner_short = 0  # inner solves that stopped at their cap above their tolerance
+        stalled = False  # Newton stopped because an update moved less than step_tolerance
         done = 0
         info = {"residual": float("nan"), "fallback": False}
         trace = [] if self.trace else None
@@ -782,6 +791,8 @@ class ImplicitEuler(Solver):
                     break
             info = self.linear.solve(self.A, self.b, self.dx)
             inner += self.linear.iterations if fixed else int(info["iterations"])
+            if not fixed and not info.get("converged", True):
+                inner_short += 1
             step = self._one
             if self.line_search:
                 self._line_search(x, k)
@@ -796,6 +807,7 @@ class ImplicitEuler(Solver):
                     trace[-1]["dx"] = moved
                     trace[-1]["step"] = float(step.numpy()[0])
                 if check and moved < self.step_tolerance:
+                    stalled = True
                     break  # stagnated (float32 floor): more iterations cannot lower the residual
         lazy = None
         if not measured:
@@ -816,6 +828,16 @@ class ImplicitEuler(Solver):
                        "residual": residual,
                        "converged": bool(check and residual < self.tolerance), "linear_residual": info["residual"],
                        "fallback": bool(info.get("fallback", False))}
+        self._stats["inner_short"] = inner_short
+        if check and not self._stats["converged"]:
+            self._short["steps"] += 1
+            self._short["new"] += 1
+            self._short["last"] = (residual, done, stalled)
+        if inner_short:
+            self._short["inner"] += inner_short
+            self._short["inner_new"] += inner_short
+        self._stats["unconverged_steps"] = self._short["steps"]
+        self._stats["inner_short_total"] = self._short["inner"]
         if self.linear_name == "chebyshev":
             self._stats["rho"] = self.linear.rho
         if self.linear_name in ("jacobi", "chebyshev"):
@@ -823,6 +845,22 @@ class ImplicitEuler(Solver):
         if trace is not None:
             self._stats["trace"] = trace
         self._lazy = lazy
+
+    def _frame_messages(self) -> list:
+        """Unconverged steps and inner solves since the last call (`Solver.frame_end`)."""
+        out = []
+        sh = self._short
+        if sh["new"]:
+            r, k, stalled = sh["last"]
+            why = (f"its updates fell below step_tolerance {self.step_tolerance:.2g} m" if stalled
+                   else f"{k} iterations, the cap")
+            out.append(f"implicit: Newton stopped above its tolerance {self.tolerance:g} m in "
+                       f"{sh['new']} step(s) (last: residual {r:.3g} m; {why})")
+        if sh["inner_new"]:
+            out.append(f"implicit: {sh['inner_new']} {self.linear_name} inner solve(s) stopped at "
+                       f"{self.linear.iterations} iterations above their tolerance")
+        sh["new"] = sh["inner_new"] = 0
+        return out
 
     def newton_system(self, state, dt: float):
         """Begin a step on ``state`` and assemble its first Newton system (for benchmarks/tests).

@@ -67,7 +67,7 @@ import numpy as np
 import warp as wp
 
 from .base import Solver
-from .contact_coupling import PD_CONTACT_STIFFNESS, ContactCoupling
+from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
 from .linear import LINEAR_SOLVERS, estimate_spectral_radius, make_linear_solver
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -153,6 +153,30 @@ def pd_rhs_kernel(
     b[i] = bi
     f[i] = wp.vec3(0.0)
     dx[i] = wp.vec3(0.0)
+
+
+@wp.kernel
+def pd_residual_kernel(b: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float), dt2: float,
+                       res: wp.array(dtype=float)):
+    """The implicit-Euler residual ``max_i dt^2 |b_i|_inf / m_i`` (metres) into ``res[0]``."""
+    i = wp.tid()
+    w = inv_mass[i]
+    if w > 0.0:
+        r = (dt2 * w) * b[i]
+        wp.atomic_max(res, 0, wp.max(wp.abs(r[0]), wp.max(wp.abs(r[1]), wp.abs(r[2]))))
+
+
+@wp.kernel
+def pd_converged_kernel(res: wp.array(dtype=float), tolerance: float,
+                        unconverged: wp.array(dtype=wp.int32)):
+    """Count the step as unconverged (``unconverged[0]``) when ``res[0] > tolerance``; keep the last
+    residual in ``res[1]`` and the last unconverged one in ``res[2]``; clear ``res[0]``."""
+    r = res[0]
+    res[1] = r
+    if r > tolerance:
+        unconverged[0] = unconverged[0] + 1
+        res[2] = r
+    res[0] = 0.0
 
 
 @wp.kernel
@@ -367,6 +391,11 @@ class ProjectiveDynamics(Solver):
         direct_max_vertices: refuse ``direct`` above this many vertices (memory ~ 8 n^2 bytes).
         contact_stiffness: ``kappa`` of the contact constraints, their weight over the inertia
             block ``m/dt^2`` (default 1e3; `warp_cloth.solvers.contact_coupling`).
+        tolerance: metres, or None (default: PD runs a fixed count and claims no convergence).
+            With a value, the implicit-Euler residual ``max_i dt^2 |grad F_i| / m_i`` at the
+            start of the last outer iteration is measured on the device (``stats["residual"]``)
+            and a step above it is counted (``stats["unconverged_steps"]``) and reported by
+            `frame_end` (a warning with the frame from the scene runner). Capturable.
         corrections: limits run after each step (`Solver.add_correction`).
         collision: a `CollisionStage`: its contacts are constraints of every local step (their
             projection onto the free half-space) and their blocks enter the global matrix, so
@@ -389,9 +418,16 @@ class ProjectiveDynamics(Solver):
                  alpha: float | None = None, rho: float | None = None, rho_safety: float = 0.99,
                  delay: int = 2, outer_rho: float | None = None, outer_delay: int = 2,
                  direct: bool = False, direct_max_vertices: int = 4000,
-                 contact_stiffness: float = PD_CONTACT_STIFFNESS,
-                 corrections=(), collision=None):
+                 contact_stiffness: float = DEFAULT_CONTACT_STIFFNESS,
+                 tolerance: float | None = None, corrections=(), collision=None):
         super().__init__(model, corrections=corrections, collision=collision)
+        if tolerance is not None and not (isinstance(tolerance, (int, float))
+                                          and math.isfinite(tolerance) and tolerance > 0):
+            raise ValueError(f"pd: tolerance must be > 0 metres or None, got {tolerance!r}")
+        self.tolerance = None if tolerance is None else float(tolerance)
+        self._res = wp.zeros(3, dtype=float, device=model.device)
+        self._short = wp.zeros(1, dtype=wp.int32, device=model.device)
+        self._short_seen = 0
         if isinstance(iterations, bool) or int(iterations) != iterations or iterations < 1:
             raise ValueError(f"pd: iterations must be a positive integer, got {iterations!r}")
         if linear is not None and linear not in LINEAR_SOLVERS:
@@ -575,6 +611,11 @@ class ProjectiveDynamics(Solver):
             wp.launch(pd_rhs_kernel, n,
                       [state.x, self.y, m.mass, A.free, inv_dt2, self.f, self.b, self.dx,
                        self._objective, self._gradient, k], device=d)
+            if k == K - 1 and self.tolerance is not None:
+                wp.launch(pd_residual_kernel, n, [self.b, m.inv_mass, dt * dt, self._res],
+                          device=d)
+                wp.launch(pd_converged_kernel, 1, [self._res, self.tolerance, self._short],
+                          device=d)
             if self.direct:
                 self._solve_direct(cc)
             else:
@@ -625,12 +666,28 @@ class ProjectiveDynamics(Solver):
             "gradient_norm": np.sqrt(self._gradient.numpy()).tolist(),
             "linear_residual": info.get("residual", float("nan")),
             "rho": self.rho,
+            **({} if self.tolerance is None else {
+                "residual": float(self._res.numpy()[1]),
+                "unconverged_steps": int(self._short.numpy()[0])}),
             **(self.collision.stats if self._coupling is not None else {}),
         }
 
     @stats.setter
     def stats(self, value):  # the base class initialises it; the property reads the device
         pass
+
+    def _frame_messages(self) -> list:
+        """Steps above ``tolerance`` since the last call (`Solver.frame_end`; one host read)."""
+        if self.tolerance is None:
+            return []
+        n = int(self._short.numpy()[0])
+        new, self._short_seen = n - self._short_seen, n
+        if new <= 0:
+            return []
+        r = float(self._res.numpy()[2])
+        return [f"pd: {new} step(s) ended above the tolerance {self.tolerance:g} m after "
+                f"{self.iterations} iterations (last: residual {r:.3g} m); raise iterations "
+                f"or use more substeps"]
 
     def describe(self) -> str:
         lin = "direct" if self.direct else f"{self.linear_name} x{self.linear_iterations}"
