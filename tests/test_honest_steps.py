@@ -12,8 +12,9 @@ import pytest
 from warp_cloth import Scene
 from warp_cloth.collision import Plane
 from warp_cloth.diagnostics import Meter
-from warp_cloth.limits import AreaLimit, StrainLimit, nearest_anchors
+from warp_cloth.limits import AreaLimit, StrainLimit
 from warp_cloth.mesh import TriMesh
+from warp_cloth.model import ClothModel
 from warp_cloth.scenes import hanging_model
 from warp_cloth.solvers import make_solver
 
@@ -106,17 +107,23 @@ def test_area_limit_reaches_its_tolerance_and_counts_short_steps():
             assert len(lim.frame_end()) == 1 and lim.frame_end() == []  # reported once
 
 
-def test_tethers_are_graph_distances_to_the_nearest_pins():
+def test_strain_limit_tethers_are_sigma_max_times_the_rest_geodesic():
+    """StrainLimit's tethers (shared with PBD, `warp_cloth.tethers`): each free vertex of a flat
+    strip tied to its nearest pin at ``sigma_max`` times the straight rest distance (the
+    geodesic of a planar mesh), pins untied."""
     mesh = TriMesh.grid(4, 1, size=(0.4, 0.1), plane="xz")  # 5 x 2 vertices, 0.1 m cells
-    pairs = mesh.edges
-    lengths = np.linalg.norm(mesh.vertices[pairs[:, 0]] - mesh.vertices[pairs[:, 1]], axis=1)
-    off, anc, dist = nearest_anchors(10, pairs, lengths, [0, 5], 1)
-    assert off[1] - off[0] == 0 and off[6] - off[5] == 0  # pins get none
-    for i in range(1, 5):  # vertex (i, 0): i cells from pin 0 along the row
-        a, b = off[i], off[i + 1]
-        assert b - a == 1 and anc[a] == 0 and dist[a] == pytest.approx(0.1 * i)
-    off2, anc2, _ = nearest_anchors(10, pairs, lengths, [0, 5], 2)
-    assert all(sorted(anc2[off2[i]:off2[i + 1]]) == [0, 5] for i in (1, 2, 3, 4, 6, 7, 8, 9))
+    model = ClothModel(mesh, pins=[0, 5], device="cpu")
+    lim = StrainLimit(model, 0.0, 1.01, tethers=1)
+    anc = lim._tether[0].numpy()
+    rest = lim._tether[1].numpy()
+    x = mesh.vertices
+    assert (anc[[0, 5]] == -1).all()
+    for i in (1, 2, 3, 4, 6, 7, 8, 9):
+        p = anc[i, 0]
+        assert p in (0, 5)
+        d = np.linalg.norm(x[i] - x[[0, 5]], axis=1).min()
+        assert np.linalg.norm(x[i] - x[p]) == pytest.approx(d)
+        assert rest[i, 0] == pytest.approx(1.01 * d, rel=1e-5)
 
 
 # ------------------------------------------------------------------ solvers that stop short

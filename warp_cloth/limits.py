@@ -76,6 +76,8 @@ import math
 import numpy as np
 import warp as wp
 
+from .tethers import tether_anchors, tether_kernel
+
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = ["StrainLimit", "AreaLimit", "edge_projection", "color_constraints"]
@@ -164,31 +166,6 @@ def strain_limit_gs_kernel(
     g = omega * edge_projection(xi, xj, wi, wj, s0 * L)
     x[i] = xi + wi * g
     x[j] = xj - wj * g
-
-
-@wp.kernel
-def tether_kernel(
-    x: wp.array(dtype=wp.vec3),
-    offsets: wp.array(dtype=wp.int32),
-    anchor: wp.array(dtype=wp.int32),
-    length: wp.array(dtype=float),
-):
-    """Long-range attachments (Kim, Chentanez and Müller 2012), one thread per vertex: put
-    ``x_i`` back inside the sphere of radius ``length[t]`` about each of its anchors (pinned
-    vertices, which never move), in turn. Unilateral: a vertex inside every sphere stays."""
-    i = wp.tid()
-    a = offsets[i]
-    b = offsets[i + 1]
-    if a == b:
-        return
-    xi = x[i]
-    for t in range(a, b):
-        p = x[anchor[t]]
-        d = xi - p
-        l = wp.length(d)
-        if l > length[t]:
-            xi = p + (length[t] / l) * d
-    x[i] = xi
 
 
 @wp.kernel
@@ -427,79 +404,6 @@ def _check_bounds(name, lo, hi, lo_name, hi_name) -> tuple[float, float]:
     return lo, hi
 
 
-def nearest_anchors(num_vertices: int, pairs: np.ndarray, lengths: np.ndarray, pins, k: int):
-    """For every vertex, its ``k`` nearest pins by graph distance over the mesh edges (metres,
-    Dijkstra from every pin at once, each vertex keeping its first ``k`` distinct pins).
-
-    Returns ``(offsets, anchor, distance)``: vertex ``i``'s anchors are
-    ``anchor[offsets[i]:offsets[i+1]]``. Pins get none. A path along edges is at least as long
-    as the geodesic, so ``sigma_max`` times this distance is a bound that the edge limits imply:
-    a tether of that length removes no configuration they allow. Host, once at set-up.
-    """
-    import heapq
-
-    adj = [[] for _ in range(num_vertices)]
-    for (i, j), L in zip(np.asarray(pairs).tolist(), np.asarray(lengths, dtype=np.float64).tolist()):
-        adj[i].append((j, L))
-        adj[j].append((i, L))
-    pinset = {int(p) for p in pins}
-    labels = [[] for _ in range(num_vertices)]  # (distance, pin), nearest first
-    heap = [(0.0, int(p), int(p)) for p in pinset]
-    heapq.heapify(heap)
-    while heap:
-        d, v, p = heapq.heappop(heap)
-        lab = labels[v]
-        if len(lab) >= k or any(q == p for _, q in lab):
-            continue
-        lab.append((d, p))
-        for u, L in adj[v]:
-            if len(labels[u]) < k:
-                heapq.heappush(heap, (d + L, u, p))
-    offsets = np.zeros(num_vertices + 1, dtype=np.int32)
-    anchor, dist = [], []
-    for v in range(num_vertices):
-        lab = [] if v in pinset else labels[v]
-        offsets[v + 1] = offsets[v] + len(lab)
-        for d, p in lab:
-            anchor.append(p)
-            dist.append(d)
-    return offsets, np.asarray(anchor, dtype=np.int32), np.asarray(dist, dtype=np.float64)
-
-
-def _planar_convex(vertices: np.ndarray, triangles: np.ndarray, rel: float = 1e-6) -> bool:
-    """True when the rest mesh lies in one plane and covers its convex hull (up to ``rel``):
-    then the geodesic between any two vertices is the straight segment, so Euclidean rest
-    distances are the geodesic distances of the rest mesh."""
-    x = np.asarray(vertices, dtype=np.float64)
-    if len(x) < 3 or len(triangles) == 0:
-        return False
-    c = x - x.mean(0)
-    _, sv, vt = np.linalg.svd(c, full_matrices=False)
-    if sv[0] <= 0 or sv[-1] > rel * sv[0]:
-        return False  # not planar
-    p = c @ vt[:2].T  # 2D coordinates in the plane
-    pts = sorted(map(tuple, p.tolist()))
-
-    def cross(o, a, b):
-        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
-
-    hull = []
-    for seq in (pts, pts[::-1]):  # Andrew's monotone chain
-        part = []
-        for q in seq:
-            while len(part) >= 2 and cross(part[-2], part[-1], q) <= 0:
-                part.pop()
-            part.append(q)
-        hull += part[:-1]
-    h = np.asarray(hull)
-    hull_area = 0.5 * abs(np.dot(h[:, 0], np.roll(h[:, 1], -1)) - np.dot(h[:, 1], np.roll(h[:, 0], -1)))
-    t = np.asarray(triangles)
-    a, b, d = p[t[:, 0]], p[t[:, 1]], p[t[:, 2]]
-    area = 0.5 * np.abs((b[:, 0] - a[:, 0]) * (d[:, 1] - a[:, 1])
-                        - (b[:, 1] - a[:, 1]) * (d[:, 0] - a[:, 0])).sum()
-    return abs(area - hull_area) <= 1e-6 * hull_area
-
-
 class _JacobiLimit:
     """Shared driver: accumulators and counters allocated once.
 
@@ -698,20 +602,15 @@ class StrainLimit(_JacobiLimit):
         self._tether = None
         if (self.tethers and ne and len(model.pins)
                 and math.isfinite(self.sigma_max) and self.gauss_seidel):
-            off, anc, dist = nearest_anchors(model.num_vertices, model.spring_pairs[:ne],
-                                             model.spring_rest[:ne], model.pins, self.tethers)
-            if len(anc) and _planar_convex(model.mesh.vertices, model.mesh.triangles):
-                # flat, convex rest mesh: the geodesic is the straight segment, shorter than
-                # the path along edges (up to 8 % on a grid with alternating diagonals), so the
-                # tether is tight in every direction
-                rest = model.mesh.vertices.astype(np.float64)
-                owner = np.repeat(np.arange(model.num_vertices), np.diff(off))
-                dist = np.linalg.norm(rest[owner] - rest[anc], axis=1)
-            if len(anc):
+            anc, dist = tether_anchors(model.mesh.vertices, model.mesh.triangles, model.pins,
+                                       self.tethers)
+            if (anc >= 0).any():
+                # sigma_max times the rest geodesic (exact on a planar rest mesh, the
+                # fast-marching estimate elsewhere): a tether the edge limits already imply
                 d = self.device
-                self._tether = (
-                    wp.array(off, dtype=wp.int32, device=d), wp.array(anc, dtype=wp.int32, device=d),
-                    wp.array((self.sigma_max * dist).astype(np.float32), dtype=float, device=d))
+                rest = np.where(anc >= 0, self.sigma_max * dist, 0.0)
+                self._tether = (wp.array(anc.astype(np.int32), dtype=wp.int32, ndim=2, device=d),
+                                wp.array(rest.astype(np.float32), dtype=float, ndim=2, device=d))
 
     @property
     def is_noop(self) -> bool:
