@@ -154,3 +154,14 @@ def test_colouring_equals_greedy_definition(make):
     for c in np.unique(colors):  # a colour touches every vertex at most once
         v = pairs[colors == c].reshape(-1)
         assert len(np.unique(v)) == len(v)
+
+
+@pytest.mark.parametrize("make", MESHES)
+def test_edge_triples_equal_the_lexicographic_sort(make):
+    from warp_cloth.mesh import edge_triples
+
+    tris = make().triangles
+    a, b = tris.reshape(-1), tris[:, [1, 2, 0]].reshape(-1)
+    trip = np.stack([np.minimum(a, b), np.maximum(a, b), np.repeat(np.arange(len(tris)), 3)], 1)
+    ref = trip[np.lexsort((trip[:, 2], trip[:, 1], trip[:, 0]))]
+    assert np.array_equal(edge_triples(tris), ref)

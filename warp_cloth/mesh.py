@@ -111,20 +111,32 @@ def check_up_axis(up_axis, where: str = "up_axis") -> str:
     return a
 
 
+def _sorted_sides(triangles: np.ndarray):
+    """The triangle sides as three 1-D arrays ``(lo, hi, tri)`` sorted by ``(lo, hi, tri)``.
+
+    One stable sort of the single key ``lo * n + hi`` (sides are generated triangle by triangle,
+    so equal keys keep increasing ``tri``): the same order as a lexicographic sort of the triples
+    at a fraction of the cost."""
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    m = len(tris)
+    a = tris.reshape(-1)
+    b = tris[:, [1, 2, 0]].reshape(-1)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    n = int(hi.max()) + 1 if len(hi) else 1
+    if n < 3_000_000_000:
+        order = np.argsort(lo * n + hi, kind="stable")
+    else:  # keys would overflow int64
+        order = np.lexsort((hi, lo))
+    return lo[order], hi[order], order // 3 if m else order
+
+
 def edge_triples(triangles: np.ndarray) -> np.ndarray:
     """The notes' sorted edge triples ``(min(i, j), max(i, j), tri)``, one per triangle side.
 
     Returned sorted lexicographically (by first vertex, then second, then triangle), which puts the
     two triples of an interior edge next to each other.
     """
-    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    m = len(tris)
-    a = tris[:, [0, 1, 2]].reshape(-1)
-    b = tris[:, [1, 2, 0]].reshape(-1)
-    t = np.repeat(np.arange(m, dtype=np.int64), 3)
-    trip = np.stack([np.minimum(a, b), np.maximum(a, b), t], axis=1)
-    order = np.lexsort((trip[:, 2], trip[:, 1], trip[:, 0]))
-    return trip[order]
+    return np.stack(_sorted_sides(triangles), axis=1).reshape(-1, 3)
 
 
 @dataclass
@@ -236,24 +248,24 @@ class TriMesh:
 
     # ------------------------------------------------------------------ topology
     def _build_topology(self) -> None:
-        trip = edge_triples(self.triangles)
-        same_as_prev = np.zeros(len(trip), dtype=bool)
-        same_as_prev[1:] = (trip[1:, 0] == trip[:-1, 0]) & (trip[1:, 1] == trip[:-1, 1])
+        lo, hi, tri_of = _sorted_sides(self.triangles)
+        same_as_prev = np.zeros(len(lo), dtype=bool)
+        same_as_prev[1:] = (lo[1:] == lo[:-1]) & (hi[1:] == hi[:-1])
         starts = np.flatnonzero(~same_as_prev)
-        counts = np.diff(np.append(starts, len(trip)))
+        counts = np.diff(np.append(starts, len(lo)))
         if (counts > 2).any():
             e = int(np.argmax(counts > 2))
             s = starts[e]
-            tris = trip[s : s + counts[e], 2].tolist()
+            tris = tri_of[s : s + counts[e]].tolist()
             raise ValueError(
-                f"{self.name}: non-manifold edge ({trip[s, 0]}, {trip[s, 1]}) is shared by "
+                f"{self.name}: non-manifold edge ({lo[s]}, {hi[s]}) is shared by "
                 f"{counts[e]} triangles {tris}; a cloth edge may have at most two"
             )
-        self.edges = trip[starts, :2].copy()
+        self.edges = np.stack([lo[starts], hi[starts]], axis=1).reshape(-1, 2)
         self.edge_tris = np.full((len(starts), 2), -1, dtype=np.int64)
-        self.edge_tris[:, 0] = trip[starts, 2]
+        self.edge_tris[:, 0] = tri_of[starts]
         interior = counts == 2
-        self.edge_tris[interior, 1] = trip[starts[interior] + 1, 2]
+        self.edge_tris[interior, 1] = tri_of[starts[interior] + 1]
 
         # bending quads (a, b, c, d): shared edge (a, b) in the winding of the first triangle,
         # c opposite it in that triangle, d in the other (vectorised over the interior edges)
