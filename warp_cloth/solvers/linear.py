@@ -638,12 +638,19 @@ def estimate_spectral_radius(A, alpha: float = 0.66, iterations: int = 60, seed:
     last = wp.clone(x)
     ax = wp.zeros(n, dtype=wp.vec3, device=d)
     sums = wp.zeros(iterations, dtype=wp.float64, device=d)
+    sweep = getattr(A, "jacobi_sweep", None)
+    if sweep is not None and sweep(x, ax, b, alpha, sums, 0):
+        # the fused sweep (projective dynamics): the same iterates, ping-ponged between x and ax
+        for k in range(1, iterations):
+            x, ax = ax, x
+            sweep(x, ax, b, alpha, sums, k)
+        iterations = 0
     for k in range(iterations):
         A.matvec(x, ax)
         wp.launch(_jacobi_update_kernel, n, [x, last, b, ax, A.diag_inv, A.free, float(alpha), 1.0,
                                              sums, k], device=d)
     r = np.sqrt(sums.numpy())
-    tail = max(2, iterations // 3)
+    tail = max(2, len(r) // 3)
     r = r[-tail:]
     if r[0] <= 0:
         return 0.0
