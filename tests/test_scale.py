@@ -183,3 +183,37 @@ def test_pd_fused_jacobi_sweep_gives_the_same_rho():
     separate = estimate_spectral_radius(A, 1.0, iterations=60)
     assert 0.5 < fused < 1.0
     assert fused == separate
+
+
+def test_scale_helpers_exact():
+    import warp as wp
+
+    from warp_cloth.bench.scale import device_bytes, loglog_slope
+
+    x = np.array([1e3, 4e3, 1.6e4])
+    assert loglog_slope(x, 3.0 * x**1.5) == pytest.approx(1.5, abs=1e-12)
+    a = wp.zeros(10, dtype=wp.vec3, device="cpu")
+    b = wp.zeros(7, dtype=wp.float32, device="cpu")
+    # the same array reached twice, through a dict, or as another object on the same memory
+    # (a view) counts once
+    assert device_bytes([a, b, a], {"k": a}, a.view(wp.vec3)) == 10 * 12 + 7 * 4
+
+
+def test_scale_bench_end_to_end(tmp_path, monkeypatch, capsys):
+    import csv
+
+    from warp_cloth.bench import scale
+
+    monkeypatch.setattr(scale, "have_matplotlib", lambda: False)
+    assert scale.main(["--sides", "3", "7", "--solvers", "explicit", "pd", "--substeps", "1",
+                       "--repeats", "1", "--out-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "log-log slopes" in out and "matplotlib is not installed" in out
+    rows = list(csv.DictReader(open(tmp_path / "scale.csv")))
+    assert [(r["solver"], int(r["vertices"])) for r in rows] == [
+        ("explicit", 16), ("explicit", 64), ("pd", 16), ("pd", 64)]
+    for r in rows:
+        assert r["finite"] == "True" and float(r["substep_ms"]) > 0
+        # at least positions, velocities, rest shape, masses, inverse masses: 44 bytes a vertex
+        assert float(r["bytes_per_vertex"]) >= 44
+    assert (tmp_path / "scale.md").exists() and not (tmp_path / "scale.png").exists()

@@ -37,6 +37,7 @@ import warp as wp
 
 from ..util import quiet_warp
 from .common import capture, markdown_table, time_callable
+from .harness import have_matplotlib, write_csv
 
 #: solver label -> (registry name, options)
 SOLVERS = {
@@ -212,8 +213,6 @@ def main(argv=None) -> int:
                                                   for r in at_big)]
     out = "\n".join(text)
     print(out)
-    from .harness import have_matplotlib, write_csv
-
     write_csv(os.path.join(args.out_dir, "scale.csv"), rows)
     with open(os.path.join(args.out_dir, "scale.md"), "w") as fh:
         fh.write(out + "\n")
