@@ -139,3 +139,16 @@ def test_ray_sweep(tmp_path):
     check_first_sweep(res, spec)
     again = run_sweep(spec, executor="ray", workers=2, progress=False)
     assert again["skipped"] == 3 and again["ran"] == 1
+
+
+def test_stability_bench_cells_on_the_pool_match_the_sequential_run(tmp_path):
+    from warp_cloth.bench import stability
+
+    common = ["--methods", "explicit", "--res", "3", "--duration", "0.05", "--quick"]
+    assert stability.main(common + ["--out-dir", str(tmp_path / "seq")]) == 0
+    assert stability.main(common + ["--out-dir", str(tmp_path / "par"), "--workers", "2"]) == 0
+    seq = read_rows(tmp_path / "seq" / "stability.csv")
+    par = read_rows(tmp_path / "par" / "stability.csv")
+    key = ("method", "stiffness", "dt", "mass_ratio", "status", "frame")
+    assert [tuple(r[k] for k in key) for r in par] == [tuple(r[k] for k in key) for r in seq]
+    assert {r["status"] for r in seq} >= {"S", "D"}  # the quick grid has both

@@ -46,7 +46,7 @@ import sys
 import time
 from dataclasses import fields
 
-__all__ = ["load_spec", "expand", "execute_run", "run_sweep", "SweepError"]
+__all__ = ["load_spec", "expand", "execute_run", "run_sweep", "map_cells", "SweepError"]
 
 SPEC_KEYS = {"scene", "solvers", "solver", "frames", "fps", "usd", "out", "params",
              "solver_options", "strain_bound", "name"}
@@ -310,41 +310,58 @@ def _ray_available() -> bool:
         return False
 
 
-def _run_pool(runs, workers: int, on_done):
-    """Runs in a spawned process pool; a crashed worker's in-flight runs are retried alone."""
+CRASH = ("the worker process died during this run (a crash in native code or killed for "
+         "memory)")
+
+
+def _crash_row(run: dict, error: str) -> dict:
+    return {"run_id": run["run_id"], "status": "error", "scene": run["scene"],
+            "solver": run["solver"], "error": error}
+
+
+def _run_pool(runs, workers: int, on_done, fn=execute_run, on_crash=_crash_row):
+    """``fn(run)`` for every run in a spawned process pool, ``on_done(run, result)`` as each ends.
+    A crashed worker's in-flight runs are run again one at a time, each in a fresh pool, so a
+    crash names its own run: ``on_crash(run, message)`` gives that run's result."""
     import concurrent.futures as cf
     import multiprocessing as mp
 
     ctx = mp.get_context("spawn")
     retry = []
     with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-        futs = {pool.submit(execute_run, r): r for r in runs}
+        futs = {pool.submit(fn, r): r for r in runs}
         for f in cf.as_completed(futs):
             try:
-                on_done(futs[f], f.result())
+                res = f.result()
             except cf.process.BrokenProcessPool:
                 retry.append(futs[f])
-    for r in retry:  # one at a time, each in a fresh pool: a crash names its own run
+                continue
+            on_done(futs[f], res)
+    for r in retry:
         with cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
             try:
-                res = pool.submit(execute_run, r).result()
+                res = pool.submit(fn, r).result()
             except cf.process.BrokenProcessPool:
-                res = {"run_id": r["run_id"], "status": "error", "scene": r["scene"],
-                       "solver": r["solver"],
-                       "error": "the worker process died during this run (a crash in native code "
-                                "or killed for memory)"}
+                res = on_crash(r, CRASH)
         on_done(r, res)
 
 
-def _run_ray(runs, workers, address, on_done):
+def _ray_init(workers, address):
     import ray
 
     if not ray.is_initialized():
         kw = {"address": address} if address else {}
         if not address and workers:
-            kw["num_cpus"] = workers
+            kw["num_cpus"] = int(workers)
         ray.init(include_dashboard=False, log_to_driver=False, **kw)
-    remote = ray.remote(max_retries=0)(execute_run)
+    return ray
+
+
+def _run_ray(runs, workers, address, on_done, fn=execute_run, on_crash=_crash_row):
+    """``fn(run)`` for every run as Ray tasks (no retries); a task that fails (its worker died)
+    gives ``on_crash(run, message)``."""
+    ray = _ray_init(workers, address)
+    remote = ray.remote(max_retries=0)(fn)
     refs = {remote.remote(r): r for r in runs}
     pending = list(refs)
     while pending:
@@ -354,10 +371,60 @@ def _run_ray(runs, workers, address, on_done):
             try:
                 res = ray.get(ref)
             except Exception as e:  # noqa: BLE001 - a crashed worker: a row with its error
-                res = {"run_id": r["run_id"], "status": "error", "scene": r["scene"],
-                       "solver": r["solver"],
-                       "error": f"{type(e).__name__}: {' '.join(str(e).split())[:500]}"}
+                res = on_crash(r, f"{type(e).__name__}: {' '.join(str(e).split())[:500]}")
             on_done(r, res)
+
+
+def resolve_executor(executor: str = "auto", address: str | None = None) -> tuple[str, str | None]:
+    """``(executor, address)``: ``"auto"`` is Ray when it is installed or an address is given
+    (``address`` or ``$RAY_ADDRESS``), else the process pool."""
+    address = address or os.environ.get("RAY_ADDRESS") or None
+    if executor == "auto":
+        executor = "ray" if (address or _ray_available()) else "pool"
+    if executor not in ("ray", "pool"):
+        raise SweepError(f"executor must be 'auto', 'ray' or 'pool', got {executor!r}")
+    if executor == "ray" and not _ray_available():
+        raise SweepError('Ray is not installed (pip install "warp-cloth[cluster]")')
+    return executor, address
+
+
+def _call_cell(job):
+    """Worker side of `map_cells`: warm once per process, then ``fn(*args)``."""
+    fn, args, warm_with = job["fn"], job["args"], job["warm"]
+    if warm_with is not None:
+        warm(*warm_with)
+    return fn(*args)
+
+
+def map_cells(fn, cells, *, workers: int | None = None, address: str | None = None,
+              executor: str = "auto", warm_with=None, on_crash=None, on_done=None) -> list:
+    """``[fn(*args) for args in cells]`` on the sweep's executors (for the benchmarks' grids).
+
+    ``fn`` must be a module-level function (it is pickled). ``warm_with = (scene, solvers)``
+    warms each worker once (`warm`). A cell whose worker crashes gets ``on_crash(args,
+    message)`` (default: raise `RuntimeError`). ``on_done(i, result)`` is called as cells end
+    (in any order). Results come back in the order of ``cells``."""
+    executor, address = resolve_executor(executor, address)
+    jobs = [{"run_id": i, "fn": fn, "args": tuple(a), "warm": warm_with} for i, a in enumerate(cells)]
+    out = [None] * len(jobs)
+
+    def crash(job, msg):
+        if on_crash is None:
+            raise RuntimeError(f"cell {job['args']}: {msg}")
+        return on_crash(job["args"], msg)
+
+    def done(job, res):
+        out[job["run_id"]] = res
+        if on_done is not None:
+            on_done(job["run_id"], res)
+
+    if workers is None:
+        workers = max(1, os.cpu_count() or 1)
+    if executor == "ray":
+        _run_ray(jobs, workers, address, done, fn=_call_cell, on_crash=crash)
+    else:
+        _run_pool(jobs, int(workers), done, fn=_call_cell, on_crash=crash)
+    return out
 
 
 def run_sweep(spec: dict, *, executor: str = "auto", workers: int | None = None,
@@ -372,11 +439,7 @@ def run_sweep(spec: dict, *, executor: str = "auto", workers: int | None = None,
     old = read_results(path)
     todo = [r for r in runs if old.get(r["run_id"], {}).get("status") not in FINISHED]
     rows = {rid: row for rid, row in old.items()}
-    address = address or os.environ.get("RAY_ADDRESS") or None
-    if executor == "auto":
-        executor = "ray" if (address or _ray_available()) else "pool"
-    if executor not in ("ray", "pool"):
-        raise SweepError(f"executor must be 'auto', 'ray' or 'pool', got {executor!r}")
+    executor, address = resolve_executor(executor, address)
     if workers is None:
         workers = max(1, os.cpu_count() or 1)
     if int(workers) != workers or workers < 1:
@@ -442,8 +505,6 @@ def cmd_sweep(args) -> int:
                 print(f"{r['run_id']} {r['solver']:9s} {json.dumps(r['params'], sort_keys=True)} "
                       f"{json.dumps(r['options'], sort_keys=True)} [{st}]")
             return 0
-        if args.executor == "ray" and not _ray_available():
-            raise SweepError('--executor ray: Ray is not installed (pip install "warp-cloth[cluster]")')
         res = run_sweep(spec, executor=args.executor, workers=args.workers,
                         address=args.address, progress=not args.quiet)
     except SweepError as e:

@@ -76,6 +76,23 @@ def run_cell(method, k, dt, ratio, res, duration, bound, density=0.15):
             "seconds": time.perf_counter() - t0}
 
 
+def _crashed_cell(args, msg):
+    """A cell whose worker process died: diverged at no known frame (the message on stderr)."""
+    print(f"warning: cell {args[:4]}: {msg}", file=sys.stderr)
+    return {"status": "D", "frame": None, "max_strain": math.nan, "seconds": math.nan}
+
+
+def parallel_cells(methods, ratios, ks, dts, res, duration, bound, workers, address) -> dict:
+    """The cells on `warp_cloth.sweep.map_cells` (Ray when installed, else a process pool)."""
+    from ..sweep import map_cells
+
+    grid = [(m, k, dt, r) for m in methods for r in ratios for k in ks for dt in dts]
+    out = map_cells(run_cell, [(m, k, dt, r, res, duration, bound) for m, k, dt, r in grid],
+                    workers=workers, address=address, warm_with=("hanging", methods),
+                    on_crash=_crashed_cell)
+    return dict(zip(grid, out))
+
+
 def fmt_dt(dt):
     return f"1/{round(1 / dt)}"
 
@@ -119,6 +136,10 @@ def main(argv=None) -> int:
     p.add_argument("--strain-bound", type=float, default=0.1, help="over-stretch threshold (0.1 = 10 %%)")
     p.add_argument("--out-dir", default="bench_out")
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--workers", type=int, default=None,
+                   help="run the cells in N worker processes (Ray when installed, else a local "
+                        "process pool; default: one after another in this process)")
+    p.add_argument("--address", default=None, help="run the cells on this Ray cluster")
     args = p.parse_args(argv)
     quiet_warp()
     from ..solvers import available
@@ -135,11 +156,16 @@ def main(argv=None) -> int:
     ks, dts = (QUICK_K, QUICK_DT) if args.quick else (FULL_K, FULL_DT)
     ratios = [1.0, args.ratio]
     os.makedirs(args.out_dir, exist_ok=True)
-    cells = {}
-    total = len(methods) * len(ks) * len(dts) * len(ratios)
     t0 = time.perf_counter()
+    cells = {}
+    if args.workers is not None or args.address is not None:
+        if args.workers is not None and args.workers < 1:
+            p.error("--workers must be positive")
+        cells = parallel_cells(methods, ratios, ks, dts, res, duration, args.strain_bound,
+                               args.workers, args.address)
+    total = len(methods) * len(ks) * len(dts) * len(ratios)
     n = 0
-    for m in methods:
+    for m in (methods if not cells else ()):
         for ratio in ratios:
             for k in ks:
                 for dt in dts:
