@@ -217,3 +217,18 @@ def test_scale_bench_end_to_end(tmp_path, monkeypatch, capsys):
         # at least positions, velocities, rest shape, masses, inverse masses: 44 bytes a vertex
         assert float(r["bytes_per_vertex"]) >= 44
     assert (tmp_path / "scale.md").exists() and not (tmp_path / "scale.png").exists()
+
+
+def test_compiled_colouring_equals_the_python_loop_and_falls_back():
+    from warp_cloth.limits import _color_constraints_python
+
+    rng = np.random.default_rng(0)
+    pairs = rng.integers(0, 40, (400, 2))
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    assert np.array_equal(color_constraints(pairs, 40), _color_constraints_python(pairs, 40))
+    assert np.array_equal(color_constraints(pairs, 40), loop_greedy_colors(pairs, 40))
+    # a star of 70 constraints at one vertex needs 70 colours: past the 63-bit mask, the Python
+    # loop answers, the same greedy colours
+    star = np.stack([np.zeros(70, dtype=np.int64), np.arange(1, 71)], axis=1)
+    assert np.array_equal(color_constraints(star, 71), np.arange(70))
+    assert len(color_constraints(np.zeros((0, 2), dtype=np.int64), 3)) == 0
