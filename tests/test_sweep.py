@@ -14,6 +14,7 @@ SPEC = {
     "scene": "hanging",
     "solvers": ["explicit"],
     "frames": 4,
+    "usd": True,
     "params": {"shape": [[4, 4]], "substeps": 2,
                # 1e5 N/m at 2 substeps a frame is far past explicit Euler's stable step: it
                # diverges; a negative stiffness is refused by ClothModel (an error row)
@@ -104,6 +105,22 @@ def test_pool_sweep_records_every_run(pool_sweep):
     spec, first = pool_sweep
     assert first["executor"] == "pool"
     check_first_sweep(first, spec)
+
+
+def test_pool_sweep_writes_one_usd_per_run(pool_sweep):
+    from pxr import Usd
+
+    spec, first = pool_sweep
+    rows = read_rows(first["csv"])
+    for r in rows:
+        assert r["usd"] == os.path.join(spec["out"], "usd", r["run_id"] + ".usd")
+        if r["status"] == "ok":
+            stage = Usd.Stage.Open(r["usd"])
+            assert stage.GetEndTimeCode() == 3  # frames 0..3
+        elif r["status"] == "error":  # the model was refused: nothing to write
+            assert not os.path.exists(r["usd"])
+        else:  # diverged: the frames before the divergence
+            assert Usd.Stage.Open(r["usd"]).GetEndTimeCode() < int(r["diverged_frame"])
 
 
 def test_rerun_skips_finished_runs(pool_sweep):
