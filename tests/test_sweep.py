@@ -169,3 +169,25 @@ def test_stability_bench_cells_on_the_pool_match_the_sequential_run(tmp_path):
     key = ("method", "stiffness", "dt", "mass_ratio", "status", "frame")
     assert [tuple(r[k] for k in key) for r in par] == [tuple(r[k] for k in key) for r in seq]
     assert {r["status"] for r in seq} >= {"S", "D"}  # the quick grid has both
+
+
+def crashy(i):
+    """Module-level (pickled by reference into the spawned workers): cell 1 kills its process
+    while cell 2 is still running in the other worker (and cell 3 waits)."""
+    import time
+
+    if i == 1:
+        time.sleep(0.3)
+        os._exit(3)
+    time.sleep(1.0 if i >= 2 else 0.0)
+    return 10 * i
+
+
+def test_a_crashed_worker_is_a_result_and_the_rest_finish():
+    """The pool breaks when a worker dies, failing every run in flight; those are run again one
+    at a time, so only the crashing cell gets the crash result."""
+    from warp_cloth.sweep import map_cells
+
+    out = map_cells(crashy, [(0,), (1,), (2,), (3,)], workers=2, executor="pool",
+                    on_crash=lambda args, msg: ("crashed", args, "died" in msg))
+    assert out == [0, ("crashed", (1,), True), 20, 30]
