@@ -191,3 +191,23 @@ def test_a_crashed_worker_is_a_result_and_the_rest_finish():
     out = map_cells(crashy, [(0,), (1,), (2,), (3,)], workers=2, executor="pool",
                     on_crash=lambda args, msg: ("crashed", args, "died" in msg))
     assert out == [0, ("crashed", (1,), True), 20, 30]
+
+
+def test_warm_runs_once_per_process_and_solver(monkeypatch):
+    import warp_cloth.scenes as scenes
+    from warp_cloth import sweep
+
+    calls = []
+
+    class Fake:
+        def run(self, out, quiet):
+            pass
+
+    monkeypatch.setattr(scenes, "build_scene", lambda name, **kw: calls.append((name, kw)) or Fake())
+    monkeypatch.setattr(sweep, "_WARMED", set())
+    sweep.warm("hanging", ["pbd", "pd"])
+    sweep.warm("hanging", ["pd", "pbd"])
+    sweep.warm("flag", ["pd"])
+    assert [(n, kw["solver"]) for n, kw in calls] == [("hanging", "pbd"), ("hanging", "pd"),
+                                                       ("flag", "pd")]
+    assert all(kw["shape"] == (2, 2) and kw["frames"] == 2 for _, kw in calls)
