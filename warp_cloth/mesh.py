@@ -222,10 +222,12 @@ class TriMesh:
             raise ValueError(f"{self.name}: triangle {k} repeats a vertex {t[k].tolist()}")
         # relative to each triangle's own size: a 1e30 m triangle is not "zero area", nor is a
         # small one in a large mesh
-        area = self.triangle_areas()
+        # the sides once, for the areas (as `triangle_areas`) and the longest side
+        # ((x0 - x2)^2 == (x2 - x0)^2 exactly)
         x0, x1, x2 = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
-        longest2 = np.maximum.reduce([((x1 - x0) ** 2).sum(1), ((x2 - x1) ** 2).sum(1),
-                                      ((x0 - x2) ** 2).sum(1)])
+        e1, e2 = x1 - x0, x2 - x0
+        area = 0.5 * np.linalg.norm(cross3(e1, e2), axis=1)
+        longest2 = np.maximum.reduce([(e1 ** 2).sum(1), ((x2 - x1) ** 2).sum(1), (e2 ** 2).sum(1)])
         tiny = area <= 1e-12 * longest2
         if tiny.any():
             k = int(np.argmax(tiny))
