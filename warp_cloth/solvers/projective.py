@@ -234,7 +234,7 @@ def pd_jacobi_sweep_kernel(
     x_out: wp.array(dtype=wp.vec3),
 ):
     """One relaxed Jacobi sweep ``x_out = x + alpha D^-1 (b - A x)`` with ``|r|^2`` summed into
-    ``sums[slot]``: `pd_matvec_kernel` and `linear._jacobi_update_kernel` (omega = 1) fused, the
+    ``sums[slot]`` (not summed when ``slot < 0``): `pd_matvec_kernel` and `linear._jacobi_update_kernel` (omega = 1) fused, the
     same arithmetic in the same order, without the ``A x`` array between them."""
     i = wp.tid()
     xi = x[i]
@@ -242,7 +242,8 @@ def pd_jacobi_sweep_kernel(
     for p in range(offsets[i], offsets[i + 1]):
         acc = acc - weights[p] * x[neighbors[p]]
     r = (b[i] - acc) * free[i]
-    wp.atomic_add(sums, slot, wp.float64(wp.dot(r, r)))
+    if slot >= 0:
+        wp.atomic_add(sums, slot, wp.float64(wp.dot(r, r)))
     x_out[i] = xi + alpha * (dinv[i] * r)
 
 
@@ -332,7 +333,7 @@ class PDSystemOperator:
 
     def jacobi_sweep(self, x, x_out, b, alpha: float, sums, slot: int) -> bool:
         """``x_out = x + alpha D^-1 (b - A x)`` in one launch (`pd_jacobi_sweep_kernel`), the
-        residual's squared norm added to ``sums[slot]``. Returns False (nothing done) when extra
+        residual's squared norm added to ``sums[slot]`` (``slot < 0``: not computed). Returns False (nothing done) when extra
         terms or vertex blocks make the fused form unavailable."""
         if self.extra or self.vertex_blocks is not None:
             return False
