@@ -211,3 +211,14 @@ def test_warm_runs_once_per_process_and_solver(monkeypatch):
     assert [(n, kw["solver"]) for n, kw in calls] == [("hanging", "pbd"), ("hanging", "pd"),
                                                        ("flag", "pd")]
     assert all(kw["shape"] == (2, 2) and kw["frames"] == 2 for _, kw in calls)
+
+
+def test_cli_bad_spec_is_a_one_line_usage_error(tmp_path, capsys):
+    from warp_cloth.cli import main
+
+    assert main(["sweep", str(tmp_path / "missing.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and "cannot read" in err and len(err.splitlines()) == 1
+    bad = write_spec(tmp_path, {"scene": "hanging", "solvers": ["warp-drive"]})
+    assert main(["sweep", bad, "--dry-run"]) == 2
+    assert "unknown solver" in capsys.readouterr().err
