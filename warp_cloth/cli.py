@@ -3,6 +3,7 @@
     warp-cloth run hanging --out hanging.usd [--frames N --fps F --substeps S --res N
                            --solver {explicit,implicit,pbd,pd} --stiffness K --density RHO ...]
     warp-cloth bench NAME [options of that benchmark]
+    warp-cloth sweep SPEC.toml|SPEC.json [--workers N --address RAY --executor auto|ray|pool]
     warp-cloth check FILE.usd [--prim PATH --json]
     warp-cloth view FILE.usd [--out PAGE.html --open]
     warp-cloth render FILE.usd --out X.png|X.gif [--frames A:B:STEP --size WxH --camera AZ,EL[,D]]
@@ -34,7 +35,7 @@ CONTACT_SCENES = ["drape", "table", "spin", "mesh", "thin", "fold", "stack"]
 SCENE_SOLVERS = {"fold": "implicit", "twist": "implicit", "stack": "implicit"}
 CONTACT_OPTIONS = ["friction", "restitution", "thickness"]
 BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability", "ccd", "limits",
-               "selfcollision", "render", "usd"]
+               "scale", "selfcollision", "render", "usd"]
 
 # option -> (solver option name, solvers that accept it)
 SOLVER_OPTIONS = {
@@ -175,6 +176,12 @@ def build_parser() -> argparse.ArgumentParser:
                        add_help=False)
     b.add_argument("name", choices=BENCH_NAMES)
     b.add_argument("args", nargs=argparse.REMAINDER)
+
+    w = sub.add_parser("sweep", help="many runs from a spec file, on Ray or a process pool "
+                       "(resumable; results CSV)")
+    from .sweep import add_arguments as _sweep_arguments
+
+    _sweep_arguments(w)
 
     c = sub.add_parser("check", help="self-intersections per frame of a USD file's mesh")
     c.add_argument("file", help="a .usd/.usda/.usdc with a time-sampled mesh")
@@ -517,6 +524,11 @@ def main(argv=None) -> int:
         return cmd_bench(args, parser)
     if args.command == "check":
         return cmd_check(args, parser)
+    if args.command == "sweep":
+        init_warp()
+        from .sweep import cmd_sweep
+
+        return cmd_sweep(args)
     if args.command == "view":
         return cmd_view(args, parser)
     if args.command == "render":

@@ -347,13 +347,50 @@ def limit_apply_kernel(
     count[i] = 0.0
 
 
+@wp.kernel
+def _greedy_color_kernel(pairs: wp.array2d(dtype=wp.int32), used: wp.array(dtype=wp.int64),
+                         colors: wp.array(dtype=wp.int64), overflow: wp.array(dtype=wp.int32)):
+    """`color_constraints`' loop, compiled: one thread walks the constraints in order."""
+    for c in range(pairs.shape[0]):
+        i = pairs[c, 0]
+        j = pairs[c, 1]
+        m = used[i] | used[j]
+        k = int(0)
+        while k < 63 and ((m >> wp.int64(k)) & wp.int64(1)) != wp.int64(0):
+            k += 1
+        if k >= 63:
+            overflow[0] = 1
+            return
+        colors[c] = wp.int64(k)
+        bit = wp.int64(1) << wp.int64(k)
+        used[i] = used[i] | bit
+        used[j] = used[j] | bit
+
+
 def color_constraints(pairs: np.ndarray, num_vertices: int) -> np.ndarray:
     """Greedy colouring: ``colors[c]`` is the smallest colour used by neither vertex of ``c``.
 
     Within a colour no two constraints share a vertex, so a colour can be projected in parallel
     and gives the same result as projecting its constraints one after another (Gauss-Seidel).
-    Runs once at set-up on the host.
+    Runs once at set-up on the host: the constraints in order, as one compiled single-thread
+    kernel on Warp's CPU device (linear time; 262k vertices' springs in milliseconds), or, when
+    a vertex would need more than 63 colours (a 64-bit mask), the same loop in Python.
     """
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    if len(pairs) and num_vertices < 2**31:
+        colors = wp.zeros(len(pairs), dtype=wp.int64, device="cpu")
+        overflow = wp.zeros(1, dtype=wp.int32, device="cpu")
+        wp.launch(_greedy_color_kernel, 1,
+                  [wp.array(pairs.astype(np.int32), dtype=wp.int32, ndim=2, device="cpu"),
+                   wp.zeros(num_vertices, dtype=wp.int64, device="cpu"), colors, overflow],
+                  device="cpu")
+        if not overflow.numpy()[0]:
+            return colors.numpy().astype(np.int64)
+    return _color_constraints_python(pairs, num_vertices)
+
+
+def _color_constraints_python(pairs: np.ndarray, num_vertices: int) -> np.ndarray:
+    """The reference loop of `color_constraints` (any number of colours)."""
     used = [0] * num_vertices  # bit mask of the colours at each vertex
     colors = np.empty(len(pairs), dtype=np.int64)
     for c, (i, j) in enumerate(np.asarray(pairs).tolist()):

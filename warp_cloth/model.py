@@ -370,32 +370,39 @@ class ClothModel:
 
     # ------------------------------------------------------------------ helpers
     def _shear_pairs(self) -> np.ndarray:
+        """The diagonal of every grid cell that is not a mesh edge, ``(min, max)``, in cell order
+        (row-major), the ``v00-v11`` diagonal before the ``v10-v01`` one. Vectorised."""
         if self.mesh.grid_shape is None:
             raise ValueError("shear_stiffness > 0 needs a structured grid mesh (TriMesh.grid)")
         nx, ny = self.mesh.grid_shape
-        have = {tuple(e) for e in self.mesh.edges.tolist()}
-        out = []
-        for j in range(ny):
-            for i in range(nx):
-                v00 = j * (nx + 1) + i
-                for a, b in ((v00, v00 + nx + 2), (v00 + 1, v00 + nx + 1)):
-                    if (min(a, b), max(a, b)) not in have:
-                        out.append((min(a, b), max(a, b)))
-        return np.asarray(out, dtype=np.int64).reshape(-1, 2)
+        n = self.mesh.num_vertices
+        j, i = np.meshgrid(np.arange(ny, dtype=np.int64), np.arange(nx, dtype=np.int64),
+                           indexing="ij")
+        v00 = (j * (nx + 1) + i).reshape(-1)
+        cand = np.stack([np.stack([v00, v00 + nx + 2], 1),
+                         np.stack([v00 + 1, v00 + nx + 1], 1)], axis=1).reshape(-1, 2)
+        cand = np.sort(cand, axis=1)
+        # the edges are sorted lexicographically, so their keys a * n + b are sorted
+        ekey = self.mesh.edges[:, 0] * n + self.mesh.edges[:, 1]
+        key = cand[:, 0] * n + cand[:, 1]
+        at = np.minimum(np.searchsorted(ekey, key), len(ekey) - 1)
+        have = ekey[at] == key
+        return cand[~have].reshape(-1, 2)
 
     def _bend_spring_pairs(self) -> np.ndarray:
+        """Skip-one springs along grid rows and columns, vertex by vertex (row-major), the row
+        spring ``(v, v + 2)`` before the column spring ``(v, v + 2 (nx + 1))``; across every
+        interior edge for an unstructured mesh. Vectorised."""
         if self.mesh.grid_shape is None:
             return self.mesh.bending_pairs
         nx, ny = self.mesh.grid_shape
-        out = []
-        for j in range(ny + 1):
-            for i in range(nx + 1):
-                v = j * (nx + 1) + i
-                if i + 2 <= nx:
-                    out.append((v, v + 2))
-                if j + 2 <= ny:
-                    out.append((v, v + 2 * (nx + 1)))
-        return np.asarray(out, dtype=np.int64).reshape(-1, 2)
+        j, i = np.meshgrid(np.arange(ny + 1, dtype=np.int64), np.arange(nx + 1, dtype=np.int64),
+                           indexing="ij")
+        j, i = j.reshape(-1), i.reshape(-1)
+        v = j * (nx + 1) + i
+        cand = np.stack([np.stack([v, v + 2], 1), np.stack([v, v + 2 * (nx + 1)], 1)], axis=1)
+        keep = np.stack([i + 2 <= nx, j + 2 <= ny], axis=1)
+        return cand[keep].reshape(-1, 2)
 
     def state(self) -> State:
         """A new state at the initial positions (default: the rest shape) with the initial

@@ -144,6 +144,27 @@ def run_cell(method, k, dt, ratio, res, duration, ref_strain, density=0.15, ener
             "ref_strain": ref_strain, "seconds": secs}
 
 
+def _crashed_cell(args, msg):
+    """A cell whose worker process died: diverged at no known frame (the message on stderr)."""
+    print(f"warning: cell {args[:4]}: {msg}", file=sys.stderr)
+    return {"status": "D", "frame": None, "max_strain": math.nan, "energy_gain": math.nan,
+            "ref_strain": args[6], "seconds": math.nan}
+
+
+def parallel_cells(methods, ratios, ks, dts, res, duration, refs, energy_tol, stretch_factor,
+                   workers, address) -> dict:
+    """The cells on `warp_cloth.sweep.map_cells` (Ray when installed, else a process pool);
+    ``refs[(k, ratio)]``: the converged reference strains (computed first, in this process)."""
+    from ..sweep import map_cells
+
+    grid = [(m, k, dt, r) for m in methods for r in ratios for k in ks for dt in dts]
+    out = map_cells(run_cell, [(m, k, dt, r, res, duration, refs[(k, r)], 0.15, energy_tol,
+                                stretch_factor) for m, k, dt, r in grid],
+                    workers=workers, address=address, warm_with=("hanging", methods),
+                    on_crash=_crashed_cell)
+    return dict(zip(grid, out))
+
+
 def fmt_dt(dt):
     return f"1/{round(1 / dt)}"
 
@@ -198,6 +219,10 @@ def main(argv=None) -> int:
     p.add_argument("--out-dir", default="bench_out")
     p.add_argument("--quick", action="store_true")
     p.add_argument("--device", default=None)
+    p.add_argument("--workers", type=int, default=None,
+                   help="run the cells in N worker processes (Ray when installed, else a local "
+                        "process pool; default: one after another in this process)")
+    p.add_argument("--address", default=None, help="run the cells on this Ray cluster")
     args = p.parse_args(argv)
     quiet_warp()
     from ..solvers import available
@@ -238,9 +263,14 @@ def main(argv=None) -> int:
                 sys.stderr.flush()
             refs[(k, ratio)] = reference_strain(k, ratio, res, duration, args.ref_dt)
     cells = {}
+    if args.workers is not None or args.address is not None:
+        if args.workers is not None and args.workers < 1:
+            p.error("--workers must be positive")
+        cells = parallel_cells(methods, ratios, ks, dts, res, duration, refs, args.energy_tol,
+                               args.stretch_factor, args.workers, args.address)
     total = len(methods) * len(ks) * len(dts) * len(ratios)
     n = 0
-    for m in methods:
+    for m in (methods if not cells else ()):
         for ratio in ratios:
             for k in ks:
                 for dt in dts:

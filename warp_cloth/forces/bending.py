@@ -59,6 +59,8 @@ import warnings
 import numpy as np
 import warp as wp
 
+from ..mesh import cross3
+
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = ["DihedralBending", "QuadraticBending", "dihedral_angles"]
@@ -204,13 +206,13 @@ def dihedral_angles(positions: np.ndarray, quads: np.ndarray) -> np.ndarray:
     x = np.asarray(positions, dtype=np.float64)
     a, b, c, d = (x[quads[:, i]] for i in range(4))
     x1, x2, x3, x4 = c, d, a, b
-    n1 = np.cross(x1 - x3, x1 - x4)
-    n2 = np.cross(x2 - x4, x2 - x3)
+    n1 = cross3(x1 - x3, x1 - x4)
+    n2 = cross3(x2 - x4, x2 - x3)
     e = x4 - x3
     n1 /= np.maximum(np.linalg.norm(n1, axis=1, keepdims=True), 1e-300)
     n2 /= np.maximum(np.linalg.norm(n2, axis=1, keepdims=True), 1e-300)
     e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-300)
-    return np.arctan2(np.einsum("ij,ij->i", np.cross(n1, n2), e), np.einsum("ij,ij->i", n1, n2))
+    return np.arctan2(np.einsum("ij,ij->i", cross3(n1, n2), e), np.einsum("ij,ij->i", n1, n2))
 
 
 def _check_k(k) -> float:
@@ -325,7 +327,7 @@ def quadratic_diagonal_kernel(
 def _cot(p, q, r):
     """cot of the angle at p in the triangle (p, q, r), vectorised."""
     u, v = q - p, r - p
-    return np.einsum("ij,ij->i", u, v) / np.linalg.norm(np.cross(u, v), axis=1)
+    return np.einsum("ij,ij->i", u, v) / np.linalg.norm(cross3(u, v), axis=1)
 
 
 def quadratic_weights(positions: np.ndarray, quads: np.ndarray):
@@ -335,8 +337,8 @@ def quadratic_weights(positions: np.ndarray, quads: np.ndarray):
     t0, t1 = _cot(a, b, c), _cot(b, a, c)  # angles at a, b in triangle (a, b, c)
     t2, t3 = _cot(a, b, d), _cot(b, a, d)  # angles at a, b in triangle (a, b, d)
     K = np.stack([t1 + t3, t0 + t2, -t0 - t1, -t2 - t3], axis=1)
-    area = 0.5 * (np.linalg.norm(np.cross(b - a, c - a), axis=1)
-                  + np.linalg.norm(np.cross(b - a, d - a), axis=1))
+    area = 0.5 * (np.linalg.norm(cross3(b - a, c - a), axis=1)
+                  + np.linalg.norm(cross3(b - a, d - a), axis=1))
     return K, area
 
 

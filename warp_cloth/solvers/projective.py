@@ -243,6 +243,35 @@ def pd_matvec_vb_kernel(
 
 
 @wp.kernel
+def pd_jacobi_sweep_kernel(
+    x: wp.array(dtype=wp.vec3),
+    diag: wp.array(dtype=float),
+    offsets: wp.array(dtype=wp.int32),
+    neighbors: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=float),
+    b: wp.array(dtype=wp.vec3),
+    dinv: wp.array(dtype=wp.mat33),
+    free: wp.array(dtype=float),
+    alpha: float,
+    sums: wp.array(dtype=wp.float64),
+    slot: int,
+    x_out: wp.array(dtype=wp.vec3),
+):
+    """One relaxed Jacobi sweep ``x_out = x + alpha D^-1 (b - A x)`` with ``|r|^2`` summed into
+    ``sums[slot]`` (not summed when ``slot < 0``): `pd_matvec_kernel` and `linear._jacobi_update_kernel` (omega = 1) fused, the
+    same arithmetic in the same order, without the ``A x`` array between them."""
+    i = wp.tid()
+    xi = x[i]
+    acc = diag[i] * xi
+    for p in range(offsets[i], offsets[i + 1]):
+        acc = acc - weights[p] * x[neighbors[p]]
+    r = (b[i] - acc) * free[i]
+    if slot >= 0:
+        wp.atomic_add(sums, slot, wp.float64(wp.dot(r, r)))
+    x_out[i] = xi + alpha * (dinv[i] * r)
+
+
+@wp.kernel
 def pd_diag_kernel(diag: wp.array(dtype=float), blocks: wp.array(dtype=wp.mat33)):
     i = wp.tid()
     blocks[i] = diag[i] * wp.identity(n=3, dtype=float)
@@ -325,6 +354,17 @@ class PDSystemOperator:
                       device=self.device)
         for t in self.extra:
             t.matvec_add(x, out)
+
+    def jacobi_sweep(self, x, x_out, b, alpha: float, sums, slot: int) -> bool:
+        """``x_out = x + alpha D^-1 (b - A x)`` in one launch (`pd_jacobi_sweep_kernel`), the
+        residual's squared norm added to ``sums[slot]`` (``slot < 0``: not computed). Returns False (nothing done) when extra
+        terms or vertex blocks make the fused form unavailable."""
+        if self.extra or self.vertex_blocks is not None:
+            return False
+        wp.launch(pd_jacobi_sweep_kernel, self.n,
+                  [x, self.diag, self.offsets, self.neighbors, self.weights, b, self.diag_inv,
+                   self.free, float(alpha), sums, int(slot), x_out], device=self.device)
+        return True
 
     def dense_scalar(self) -> np.ndarray:
         """The scalar (n x n) factor ``S`` of ``A = S (x) I_3`` in float64 (host; for ``direct``).
