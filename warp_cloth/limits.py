@@ -77,6 +77,7 @@ import numpy as np
 import warp as wp
 
 from .tethers import tether_anchors, tether_kernel
+from .util import positive_finite
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
@@ -416,15 +417,7 @@ def _check_relaxation(name, relaxation) -> float:
 
 
 def _check_tolerance(name, tolerance):
-    if tolerance is None:
-        return None
-    try:
-        t = float(tolerance)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: tolerance must be a number > 0 or None, got {tolerance!r}") from None
-    if not (math.isfinite(t) and t > 0.0):
-        raise ValueError(f"{name}: tolerance must be a finite number > 0 or None, got {tolerance!r}")
-    return t
+    return None if tolerance is None else positive_finite(tolerance, f"{name}: tolerance")
 
 
 def _check_bounds(name, lo, hi, lo_name, hi_name) -> tuple[float, float]:

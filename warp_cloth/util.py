@@ -72,5 +72,6 @@ def positive_finite(value, what: str, unit: str = "") -> float:
     except (TypeError, ValueError):
         raise ValueError(f"{what} must be a positive number{of}, got {value!r}") from None
     if not (math.isfinite(v) and v > 0):
-        raise ValueError(f"{what} must be positive and finite{of}, got {value!r}")
+        raise ValueError(f"{what} must be positive and finite{f' ({unit})' if unit else ''}, "
+                         f"got {value!r}")
     return v

@@ -66,6 +66,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..util import positive_finite
 from .base import Solver
 from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
 from .linear import LINEAR_SOLVERS, estimate_spectral_radius, make_linear_solver
@@ -461,10 +462,8 @@ class ProjectiveDynamics(Solver):
                  contact_stiffness: float = DEFAULT_CONTACT_STIFFNESS,
                  tolerance: float | None = None, corrections=(), collision=None):
         super().__init__(model, corrections=corrections, collision=collision)
-        if tolerance is not None and not (isinstance(tolerance, (int, float))
-                                          and math.isfinite(tolerance) and tolerance > 0):
-            raise ValueError(f"pd: tolerance must be > 0 metres or None, got {tolerance!r}")
-        self.tolerance = None if tolerance is None else float(tolerance)
+        self.tolerance = (None if tolerance is None
+                          else positive_finite(tolerance, "pd: tolerance", "metres"))
         self._res = wp.zeros(3, dtype=float, device=model.device)
         self._short = wp.zeros(1, dtype=wp.int32, device=model.device)
         self._short_seen = 0
