@@ -28,7 +28,8 @@ Per step, on the cloth's path from ``x_start`` to ``x`` (``physics.md`` 2.18-2.2
    ``self_zone_vertices``, ``self_fallback_all``, per step and summed over the run), never
    silent.
 
-No host decision: every round is launched, and each does nothing once nothing is left.
+No host decision: the rounds are a device-side loop and the impact zones a device-side
+conditional (`SelfCollision.resolve`).
 """
 
 from __future__ import annotations
@@ -242,16 +243,37 @@ def accumulate_kernel(counters: wp.array(dtype=int), totals: wp.array(dtype=int)
 
 @wp.kernel
 def round_end_kernel(rec: ContactRecord, violated: wp.array(dtype=int), done: wp.array(dtype=int),
-                     stats: wp.array(dtype=int)):
+                     stats: wp.array(dtype=int), flags: wp.array(dtype=int), rounds: int):
     """After a round: its contacts and overflow into the step's counters; ``done`` once a round's
     projection found no entry violated by more than 1 % of the thickness (the next detections
-    would find the same pairs, already apart)."""
+    would find the same pairs, already apart). ``flags``: [rounds run, another round (the
+    `wp.capture_while` condition), the impact-zone passes needed (`wp.capture_if`)]."""
     if done[0] == 0:
         stats[0] = stats[0] + wp.min(rec.count[0], rec.vertex.shape[0])
         stats[1] = stats[1] + rec.overflow[0]
         if violated[0] == 0:
             done[0] = 1
     violated[0] = 0
+    flags[0] = flags[0] + 1
+    flags[1] = 0
+    if done[0] == 0 and flags[0] < rounds:
+        flags[1] = 1
+    flags[2] = 1 - done[0]
+
+
+@wp.kernel
+def step_begin_kernel(done: wp.array(dtype=int), violated: wp.array(dtype=int),
+                      flags: wp.array(dtype=int), counters: wp.array(dtype=int)):
+    """The step's flags and counters reset in one launch: not done, a first round to run."""
+    i = wp.tid()
+    if i < counters.shape[0]:
+        counters[i] = 0
+    if i == 0:
+        done[0] = 0
+        violated[0] = 0
+        flags[0] = 0
+        flags[1] = 1
+        flags[2] = 0
 
 
 class SelfCollision:
@@ -296,6 +318,7 @@ class SelfCollision:
         self.done = wp.zeros(1, dtype=int, device=d)
         self.violated = wp.zeros(1, dtype=int, device=d)
         self._never = wp.zeros(1, dtype=int, device=d)
+        self._flags = wp.zeros(3, dtype=int, device=d)  # round_end_kernel
         self._no_pairs = wp.zeros(0, dtype=wp.vec2i, device=d)
         self._npairs = wp.zeros(1, dtype=int, device=d)
 
@@ -355,25 +378,34 @@ class SelfCollision:
                       [state.x, state.v, self.acc, self.cnt, 1.0 / dt], device=d)
 
     def resolve(self, state, x_start, dt: float) -> None:
-        """Rounds of detection and response on ``x_start -> state.x``, then the fail-safe.
-        Once a round's projection finds every contact satisfied (``done``), the later rounds
-        and the fail-safe's detections return at once (device flag: no host read)."""
+        """Rounds of detection and response on ``x_start -> state.x``, then the impact zones.
+        The rounds run in a device-side loop (`wp.capture_while`) that stops once a round's
+        projection finds every contact satisfied (``done``) or after ``rounds``; the impact
+        zones and the last resort run only if it stopped short (`wp.capture_if`). In a recorded
+        graph both are conditional nodes: no host read, and a step without contacts pays one
+        round. Run eagerly, Warp reads the flags on the host."""
         m, d = self.model, self.device
-        self.counters.zero_()
-        self.done.zero_()
-        self.violated.zero_()
-        for _ in range(self.rounds):
-            self.record.count.zero_()
-            self.record.overflow.zero_()
-            self.detect(x_start, state.x, self.thickness, self.record, self.done)
-            self._project(state, dt)
-            wp.launch(round_end_kernel, 1, [self.record, self.violated, self.done,
-                                            self.counters], device=d)
+        wp.launch(step_begin_kernel, max(len(STAT_KEYS), 1),
+                  [self.done, self.violated, self._flags, self.counters], device=d)
+        wp.capture_while(self._flags[1:2], self._round, state=state, x_start=x_start, dt=dt)
+        wp.capture_if(self._flags[2:3], self._fallback, state=state, x_start=x_start, dt=dt)
+        wp.launch(accumulate_kernel, len(STAT_KEYS), [self.counters, self.totals], device=d)
+
+    def _round(self, state, x_start, dt):
+        self.record.count.zero_()
+        self.record.overflow.zero_()
+        self.detect(x_start, state.x, self.thickness, self.record, self.done)
+        self._project(state, dt)
+        wp.launch(round_end_kernel, 1, [self.record, self.violated, self.done, self.counters,
+                                        self._flags, self.rounds], device=self.device)
+
+    def _fallback(self, state, x_start, dt):
         # what is left after the last round: paths that still come within 5 % of the thickness
         # (all but touching: a crossing would pass through zero), fresh detection. Pairs merely
         # closer than the thickness (a fold tighter than it, a contact the rounds did not
         # separate fully) are not a failure and keep their motion. Rigid impact zones, grown
         # over `zone_passes` detections, then the whole cloth back to its start
+        m, d = self.model, self.device
         gap = FAILSAFE_GAP * self.thickness
         self.zones.reset()
         for _ in range(self.zone_passes):
@@ -386,7 +418,6 @@ class SelfCollision:
         wp.launch(revert_kernel, self.threads,
                   [self.record, state.x, state.v, x_start, m.inv_mass, self.counters, 4,
                    self.threads], device=d)
-        wp.launch(accumulate_kernel, len(STAT_KEYS), [self.counters, self.totals], device=d)
 
     def frame_end(self) -> list:
         """Since the last call: steps that returned the whole cloth to its start, and dropped
