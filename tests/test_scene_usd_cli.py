@@ -169,3 +169,34 @@ def test_cli_contact_options_reach_the_contact(tmp_path, monkeypatch):
                      "--restitution", "0.2", "--thickness", "0.01", "--out", str(out), "--quiet"]) == 0
     c = captured["contact"]
     assert (c.friction, c.restitution, c.thickness) == (0.7, 0.2, 0.01)
+
+
+def test_a_frame_graph_that_cannot_be_recorded_runs_without_one(monkeypatch, capsys):
+    """Recording the frame as a Warp graph fails (as on a driver without conditional graph
+    nodes): the runner says so once and steps without a graph, to the same result."""
+    import warp as wp
+
+    from warp_cloth import scene as scene_mod
+
+    ref = hanging(res=4, frames=6, solver="pbd")
+    ref.capture = False
+    ref.run(None, quiet=True, energy=False)
+
+    class _Refuses:
+        def __init__(self, *a, **k):
+            pass
+
+        def __enter__(self):
+            raise RuntimeError("conditional graph nodes are not supported")
+
+        def __exit__(self, *exc):
+            return False
+
+    monkeypatch.setattr(scene_mod.wp, "ScopedCapture", _Refuses)
+    sc = hanging(res=4, frames=6, solver="pbd")
+    st = sc.run(None, energy=False, progress=False)
+    err = capsys.readouterr().err
+    assert not st.captured
+    assert err.count("recording the frame as a Warp graph failed") == 1
+    np.testing.assert_array_equal(sc.state.positions(), ref.state.positions())
+    assert wp.ScopedCapture is _Refuses  # the patch was in effect

@@ -237,6 +237,7 @@ class Scene:
                                               model.num_vertices, device=model.device)
         stage = getattr(solver, "collision", None)
         graph = None
+        no_graph = False
         wall = 0.0
         first = 0.0
         timed = 0
@@ -254,13 +255,26 @@ class Scene:
                     recording = False
                     if graph is not None:
                         wp.capture_launch(graph)
-                    elif frame >= 2 and self.capture and solver.capturable:
+                    elif frame >= 2 and self.capture and solver.capturable and not no_graph:
                         recording = True
-                        with wp.ScopedCapture(device=model.device, force_module_load=False) as cap:
+                        try:
+                            with wp.ScopedCapture(device=model.device,
+                                                  force_module_load=False) as cap:
+                                for _ in range(self.substeps):
+                                    solver.step(state, self.dt)
+                            graph = cap.graph
+                        except Exception as e:  # noqa: BLE001 - any capture failure: run eagerly
+                            # e.g. a device whose driver cannot record conditional graph nodes
+                            # (wp.capture_while needs CUDA 12.4+): recorded launches did not run
+                            no_graph = True
+                            if not quiet:
+                                bar.note(f"warning: frame {frame}: recording the frame as a Warp "
+                                         f"graph failed ({type(e).__name__}: {e}); running "
+                                         "without a graph")
                             for _ in range(self.substeps):
                                 solver.step(state, self.dt)
-                        graph = cap.graph
-                        wp.capture_launch(graph)
+                        else:
+                            wp.capture_launch(graph)
                     else:
                         for _ in range(self.substeps):
                             solver.step(state, self.dt)
