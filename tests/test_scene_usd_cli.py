@@ -200,3 +200,25 @@ def test_a_frame_graph_that_cannot_be_recorded_runs_without_one(monkeypatch, cap
     assert err.count("recording the frame as a Warp graph failed") == 1
     np.testing.assert_array_equal(sc.state.positions(), ref.state.positions())
     assert wp.ScopedCapture is _Refuses  # the patch was in effect
+
+
+def test_an_interrupt_while_recording_the_graph_is_not_taken_for_a_failed_recording(monkeypatch):
+    """Ctrl-C (or the CLI's SIGTERM, also a BaseException) arriving while a frame graph is being
+    recorded ends the run; the fall-back for a failed recording must not swallow it (a SIGTERM
+    during recording once left a 1,000,000-frame run going)."""
+    from warp_cloth import scene as scene_mod
+
+    for exc in (KeyboardInterrupt, cli._Terminated):
+        class _Interrupted:
+            def __init__(self, *a, **k):
+                pass
+
+            def __enter__(self, exc=exc):
+                raise exc()
+
+            def __exit__(self, *e):
+                return False
+
+        monkeypatch.setattr(scene_mod.wp, "ScopedCapture", _Interrupted)
+        with pytest.raises(exc):
+            hanging(res=4, frames=6, solver="pbd").run(None, quiet=True, energy=False)

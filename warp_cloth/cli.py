@@ -52,8 +52,10 @@ SOLVER_OPTIONS = {
 EXIT_DIVERGED, EXIT_OUTPUT, EXIT_CROSSINGS, EXIT_SIGINT, EXIT_SIGTERM = 3, 4, 5, 130, 143
 
 
-class _Terminated(Exception):
-    """Raised in the main thread by the SIGTERM handler, so the run finishes like on Ctrl-C."""
+class _Terminated(BaseException):
+    """Raised in the main thread by the SIGTERM handler, so the run finishes like on Ctrl-C.
+    A `BaseException`, like `KeyboardInterrupt`: no ``except Exception`` on the way (the
+    runner's fall-back when a frame graph cannot be recorded) may swallow it."""
 
 
 def _on_sigterm(signum, frame):
