@@ -488,3 +488,32 @@ def test_pbd_one_substep_hanging_cloth_stays_bounded_with_tethers(gs, bound):
     on, off = out[None], out[False]
     assert on.max_strain < bound and on.min_height > -2e-3
     assert off.max_strain > 2 * bound
+
+
+def test_tethers_follow_pins_that_move_apart():
+    """Pins that stretch the cloth (a 10-cell strip, its right end pulled 0.1 m to the right
+    over 0.1 s): the tethers of the vertices tied to opposite ends scale with the pins' own
+    stretch (`PinStretch`), so the strip stretches evenly (10 % every edge along it) instead of
+    the tethers putting the whole 0.1 m into the middle cell (100 % there)."""
+    from warp_cloth.tethers import PinStretch
+
+    mesh = TriMesh.grid(10, 1, size=(1.0, 0.1), plane="xz")
+    x0 = mesh.vertices.astype(np.float64)
+    left = np.flatnonzero(np.isclose(x0[:, 0], x0[:, 0].min()))
+    right = np.flatnonzero(np.isclose(x0[:, 0], x0[:, 0].max()))
+    pins = np.concatenate([left, right])
+    p0 = x0[pins]
+    p1 = p0 + np.where(np.isin(pins, right)[:, None], [0.1, 0.0, 0.0], 0.0)
+    model = ClothModel(mesh, pins=pins, pin_path=PinPath([0.0, 0.1], np.stack([p0, p1])),
+                       gravity=(0.0, 0.0, 0.0), damping=2.0)
+    assert PinStretch(model).moving
+    s = PositionBased(model, iterations=10)
+    assert s.tethers
+    st = model.state()
+    for _ in range(60):
+        s.step(st, 1.0 / 60)
+    assert s._pin_stretch.scale.numpy()[0] == pytest.approx(1.1, rel=1e-4)
+    strain = edge_strains(model, st.positions())
+    assert strain.max() < 0.15, strain.max()
+    # static pins: the ratio from the initial positions, 1 at rest
+    assert PinStretch(ClothModel(mesh, pins=pins)).scale.numpy()[0] == pytest.approx(1.0)

@@ -76,7 +76,7 @@ import math
 import numpy as np
 import warp as wp
 
-from .tethers import tether_anchors, tether_kernel
+from .tethers import PinStretch, tether_anchors, tether_kernel
 from .util import positive_finite
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -639,8 +639,10 @@ class StrainLimit(_JacobiLimit):
                 # fast-marching estimate elsewhere): a tether the edge limits already imply
                 d = self.device
                 rest = np.where(anc >= 0, self.sigma_max * dist, 0.0)
+                self._pin_stretch = PinStretch(model)
                 self._tether = (wp.array(anc.astype(np.int32), dtype=wp.int32, ndim=2, device=d),
-                                wp.array(rest.astype(np.float32), dtype=float, ndim=2, device=d))
+                                wp.array(rest.astype(np.float32), dtype=float, ndim=2, device=d),
+                                self._pin_stretch.scale)
 
     @property
     def is_noop(self) -> bool:
@@ -652,6 +654,8 @@ class StrainLimit(_JacobiLimit):
     def _begin(self, state):
         if self.gauss_seidel:
             wp.copy(self._x_before, state.x)
+        if self._tether is not None:
+            self._pin_stretch.update(state.x)
 
     def _finish(self, state, dt):
         if self.gauss_seidel:

@@ -102,7 +102,7 @@ import warp as wp
 
 from ..forces.springs import SpringForce
 from ..limits import color_constraints, edge_projection
-from ..tethers import tether_anchors, tether_kernel  # noqa: F401 (tether_anchors re-exported)
+from ..tethers import PinStretch, tether_anchors, tether_kernel  # noqa: F401 (tether_anchors re-exported)
 from .base import Solver
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -418,6 +418,7 @@ class PositionBased(Solver):
             self.tether_rest = rest_t
             self._tether_anchor = wp.array(anchors.astype(np.int32), dtype=wp.int32, ndim=2, device=d)
             self._tether_rest = wp.array(rest_t.astype(np.float32), dtype=float, ndim=2, device=d)
+            self._pin_stretch = PinStretch(model)
 
     # ------------------------------------------------------------------ pieces
     @property
@@ -433,6 +434,8 @@ class PositionBased(Solver):
         if self.use_lambda:
             self._lambda.zero_()
         fused = False
+        if self.tethers:  # how far the pins themselves stretch the cloth (moving pins)
+            self._pin_stretch.update(x)
         for c in projectors:  # contact: the vertices near obstacles, listed once per step
             if hasattr(c, "begin_iterations"):
                 c.begin_iterations(x, self._x_start, dt)
@@ -455,7 +458,8 @@ class PositionBased(Solver):
                 fused = fused or last
             if self.tethers:
                 wp.launch(tether_kernel, m.num_vertices,
-                          [x, self._tether_anchor, self._tether_rest], device=d)
+                          [x, self._tether_anchor, self._tether_rest, self._pin_stretch.scale],
+                          device=d)
             for c in projectors:
                 c.project_positions(x, self._x_start, dt)
         return fused
