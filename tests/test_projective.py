@@ -348,3 +348,24 @@ def test_default_inner_solver_is_cg_with_a_collision_stage():
     assert "cg x20" in pd.describe()
     kept = ProjectiveDynamics(m, linear="chebyshev", collision=CollisionStage(m, [Plane()]))
     assert kept.linear_name == "chebyshev"
+
+
+def test_pd_contact_iterations_run_on_impact_and_are_counted(capsys):
+    """With a collision stage, PD adds iterations while its residual is above
+    ``contact_residual`` (device-side loop); they are counted, and steps that use them all are
+    reported on stderr by the runner. ``contact_iterations=0`` adds none."""
+    from warp_cloth.contact_scenes import table
+
+    out = {}
+    for ci in (3, 0):
+        scene = table(solver="pd", res=8, frames=40, solver_options=dict(contact_iterations=ci))
+        scene.run(None, progress=False)
+        out[ci] = scene.solver.stats
+        out[ci, "err"] = capsys.readouterr().err
+    assert out[3]["contact_iterations_total"] > 0
+    assert out[3]["contact_short_steps"] > 0  # 3 are not enough on impact here
+    assert "used all 3 contact iterations" in out[3, "err"]
+    assert out[0]["contact_iterations_total"] == 0 and out[0]["contact_short_steps"] == 0
+    assert "contact iterations" not in out[0, "err"]
+    with pytest.raises(ValueError, match="contact_iterations"):
+        table(solver="pd", res=4, frames=2, solver_options=dict(contact_iterations=-1))
