@@ -236,8 +236,8 @@ def test_table_scene_plausible_with_every_solver(table_runs, solver_name):
     assert min(run["phi"]) >= 0.005 - 1e-4
     rise = np.diff(run["E"]).max()
     # projective dynamics stops short of the minimiser (10 iterations, then contact iterations
-    # while its residual is above 3 cm): measured up to 4e-3 J (0.3 % of the 1.25 J) here, and
-    # 6.5e-4 J on the default 24 x 24 table; implicit Euler 1e-4 J
+    # while its residual is above 0.1 m): measured up to 4e-3 J (0.3 % of the 1.25 J) here, and
+    # 1.2e-3 J on the default table; implicit Euler 1e-4 J
     bound = 5e-3 if solver_name == "pd" else 2e-3
     assert rise < bound, f"energy rose by {rise:.2e} J in a frame (static obstacles)"
 

@@ -358,7 +358,8 @@ def test_pd_contact_iterations_run_on_impact_and_are_counted(capsys):
 
     out = {}
     for ci in (3, 0):
-        scene = table(solver="pd", res=8, frames=40, solver_options=dict(contact_iterations=ci))
+        scene = table(solver="pd", res=8, frames=40,
+                      solver_options=dict(contact_iterations=ci, contact_residual=0.03))
         scene.run(None, progress=False)
         out[ci] = scene.solver.stats
         out[ci, "err"] = capsys.readouterr().err
