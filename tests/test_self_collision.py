@@ -338,6 +338,9 @@ def test_weak_projection_falls_back_on_impact_zones_not_crossings():
     m = scene.model
     sc = scene.collision.self_collision
     scene.collision.self_collision = SelfCollision(m, sc.thickness, rounds=1, iterations=1)
+    # self-contacts after the solve only: inside it, PD alone keeps this fold apart and the
+    # zones are never reached
+    scene.collision.self_in_solve = False
     chk = SelfIntersectionChecker(m.mesh.triangles, m.mesh.edges, m.num_vertices)
     crossings = []
     scene.run(None, quiet=True, energy=False, on_frame=lambda f, st: crossings.append(chk(st.x)))
@@ -384,3 +387,26 @@ def test_record_overflow_is_reported_and_the_record_regrows(capsys):
     assert "did not fit the record; its room is doubled" in err
     assert sc.capacity >= 64  # grew several times
     assert over[-1] == 0 and max(over) > 0  # dropped early, nothing at the end
+
+
+@pytest.mark.parametrize("solver_name", ["pd", "implicit"])
+def test_self_contacts_inside_the_solve_keep_a_fold_calm(solver_name):
+    """Self-contacts as penalty terms of the implicit and projective solves (the stage's
+    default ``self_in_solve``): a sheet folding onto itself (12 x 12, 60 frames) gains at most
+    2 mJ in any frame and stretches under 1.5 %, without crossings; with the self-contacts only
+    after the solve, the solve pushes the layers into each other every step and the response
+    throws them apart (measured: +47 mJ in a frame and 2.5 % with pd, +15 mJ and 2.2 % with
+    implicit; in solve 0.4 mJ, 0.2 % / 0.55 %)."""
+    from warp_cloth.diagnostics import Meter
+
+    out = {}
+    for ins in (True, False):
+        scene = fold(solver=solver_name, res=12, frames=60, size=0.6, angle=150.0)
+        scene.collision.self_in_solve = ins
+        meter, E = Meter(scene.model), []
+        r = scene.run(None, quiet=True, check_intersections=True,
+                      on_frame=lambda f, st: E.append(meter(st).energy))
+        out[ins] = (float(np.diff(E).max()), r.max_strain, r.crossing_frames)
+    rise, strain, crossings = out[True]
+    assert rise < 2e-3 and strain < 0.015 and crossings == 0, out
+    assert out[False][0] > 5 * rise, out  # the same fold, self-contacts after the solve only

@@ -215,15 +215,19 @@ def newton_contact_kernel(
     vblock: wp.array(dtype=wp.mat33),
     nblock: wp.array(dtype=wp.mat33),
     active: wp.array(dtype=int),
+    on_out: wp.array(dtype=int),
 ):
     """Active entries: their force ``-grad E_c`` into ``b``; their blocks into ``diag`` and
     ``vblock`` (``w_j^2 H``), the normal penalty's alone into ``nblock`` (for the residual);
-    the number of active entries into ``active[0]``."""
+    the number of active entries into ``active[0]``; with an ``on_out`` array, each entry's
+    activity (the off-diagonal part of the multi-vertex entries' Hessian, `self_matvec_kernel`)."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
         on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources,
                                          0)
+        if on_out.shape[0] > 0:
+            on_out[e] = int(on)
         if on:
             vid = rec.vertex[e]
             w = rec.weight[e]
@@ -236,6 +240,39 @@ def newton_contact_kernel(
                     wp.atomic_add(vblock, v, h)
                     wp.atomic_add(nblock, v, (w[j] * w[j]) * Hn)
             wp.atomic_add(active, 0, 1)
+
+
+@wp.kernel
+def self_matvec_kernel(rec: ContactRecord, on: wp.array(dtype=int),
+                       inv_mass: wp.array(dtype=float), kappa_dt2: float, num_threads: int,
+                       x: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
+    """The off-diagonal part of the active multi-vertex entries' Hessian
+    ``k (w w^T) (x) n n^T`` times ``x`` into ``out`` (the diagonal blocks ``k w_j^2 n n^T`` are
+    the operator's ``vertex_blocks``): ``out_j += k w_j n (n . sum_{l != j} w_l x_l)``, free
+    vertices only (pins are eliminated)."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        if on[e] == 0:
+            continue
+        vid = rec.vertex[e]
+        w = rec.weight[e]
+        n = rec.normal[e]
+        im = float(0.0)
+        s = float(0.0)
+        for j in range(4):
+            v = vid[j]
+            if v >= 0:
+                im = im + w[j] * w[j] * inv_mass[v]
+                if inv_mass[v] > 0.0:
+                    s = s + w[j] * wp.dot(n, x[v])
+        if im <= 0.0:
+            continue
+        k = kappa_dt2 / im
+        for j in range(4):
+            v = vid[j]
+            if v >= 0 and inv_mass[v] > 0.0:
+                wp.atomic_add(out, v, (k * w[j] * (s - w[j] * wp.dot(n, x[v]))) * n)
 
 
 @wp.kernel
@@ -338,15 +375,19 @@ def pd_contact_kernel(
     vblock: wp.array(dtype=wp.mat33),
     objective: wp.array(dtype=wp.float64),
     slot: int,
+    on_out: wp.array(dtype=int),
 ):
     """Local step of the contact constraints: the projection onto ``g >= 0`` gives the force
     ``-k_c min(g, 0) w_j n`` (and friction); the blocks ``w_j^2 H`` into ``vblock`` for this
-    iteration's global matrix; ``E_c`` into the objective."""
+    iteration's global matrix; ``E_c`` into the objective; with an ``on_out`` array, each
+    entry's activity (`self_matvec_kernel`)."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
         on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources,
                                          1)
+        if on_out.shape[0] > 0:
+            on_out[e] = int(on)
         if on:
             vid = rec.vertex[e]
             w = rec.weight[e]
@@ -435,6 +476,18 @@ class ContactCoupling:
         self.sources = max(1, len(stage.obstacles))
         # normal force per (vertex, obstacle) at the end of the last step: friction's bound
         self.lam = wp.zeros(model.num_vertices * self.sources, dtype=float, device=self.device)
+        self._no_flags = wp.zeros(0, dtype=int, device=self.device)
+        # self-contacts inside the solve (stage.self_in_solve): their own record, each entry's
+        # activity at the last assembly, and the off-diagonal Hessian as an operator term
+        sc = getattr(stage, "self_collision", None)
+        self.self_record = None
+        if sc is not None and getattr(stage, "self_in_solve", False):
+            from ..collision.record import make_record
+
+            self.self_record = make_record(sc.capacity, self.device)
+            self.self_on = wp.zeros(sc.capacity, dtype=int, device=self.device)
+            self.self_threads = max(1, -(-sc.capacity // BATCH))
+            self._dt = 1.0
 
     @property
     def record(self):
@@ -450,6 +503,18 @@ class ContactCoupling:
         self.stage.detect(x_start, x_pred, dt, time)
         self.active.zero_()
         wp.copy(self.x_pred, x_pred)
+        if self.self_record is not None:
+            sc = self.stage.self_collision
+            if self.self_record.vertex.shape[0] != sc.capacity:  # the stage's record grew
+                from ..collision.record import make_record
+
+                self.self_record = make_record(sc.capacity, self.device)
+                self.self_on = wp.zeros(sc.capacity, dtype=int, device=self.device)
+                self.self_threads = max(1, -(-sc.capacity // BATCH))
+            self.self_record.count.zero_()
+            self.self_record.overflow.zero_()
+            sc.detect(x_start, x_pred, sc.thickness + self.stage.solve_margin, self.self_record)
+            self.self_on.zero_()
 
     # ------------------------------------------------------------------ Newton
     def add_newton(self, x, b, diag, dt: float) -> None:
@@ -460,7 +525,24 @@ class ContactCoupling:
         self.active.zero_()
         wp.launch(newton_contact_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, *self._args(dt), b, diag, self.vblock,
-                   self.nblock, self.active], device=self.device)
+                   self.nblock, self.active, self._no_flags], device=self.device)
+        if self.self_record is not None:
+            self._dt = dt
+            wp.launch(newton_contact_kernel, self.self_threads,
+                      [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
+                       self.self_threads, b, diag, self.vblock, self.nblock, self.active,
+                       self.self_on], device=self.device)
+
+    # the operator's extra term (`SpringSystemOperator.extra`)
+    def matvec_add(self, x, out) -> None:
+        if self.self_record is not None:
+            wp.launch(self_matvec_kernel, self.self_threads,
+                      [self.self_record, self.self_on, self.model.inv_mass,
+                       self.kappa / (self._dt * self._dt), self.self_threads, x, out],
+                      device=self.device)
+
+    def add_diagonal(self, diag) -> None:  # its diagonal blocks are added by `add_newton`
+        pass
 
     def friction_guess(self, x, disp, dt: float, f_drive) -> None:
         """Friction's normal force for the step and the initial guess of the vertices it acts
@@ -475,6 +557,10 @@ class ContactCoupling:
         wp.launch(contact_energy_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, *self._args(dt), out, slot],
                   device=self.device)
+        if self.self_record is not None:
+            wp.launch(contact_energy_kernel, self.self_threads,
+                      [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
+                       self.self_threads, out, slot], device=self.device)
 
     def end_step(self, x, v, dt: float) -> None:
         """After the solve: the normal forces for the next step's friction, and no vertex held
@@ -495,7 +581,13 @@ class ContactCoupling:
         self.vblock.zero_()
         wp.launch(pd_contact_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, *self._args(dt), f, self.vblock,
-                   objective, slot], device=self.device)
+                   objective, slot, self._no_flags], device=self.device)
+        if self.self_record is not None:
+            self._dt = dt
+            wp.launch(pd_contact_kernel, self.self_threads,
+                      [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
+                       self.self_threads, f, self.vblock, objective, slot, self.self_on],
+                      device=self.device)
 
     def invert_diagonal(self, blocks, free, dinv) -> None:
         """``dinv = (blocks + vblock)^-1`` (the global matrix's diagonal with contact)."""

@@ -647,7 +647,11 @@ class ImplicitEuler(Solver):
             self.A.vertex_blocks = None
             return None
         if self._coupling is None or self._coupling.stage is not self.collision:
+            if self._coupling is not None and self._coupling in self.A.extra:
+                self.A.extra.remove(self._coupling)
             self._coupling = ContactCoupling(self.model, self.collision, self.contact_stiffness)
+            if self._coupling.self_record is not None:
+                self.A.extra.append(self._coupling)
         self.A.vertex_blocks = self._coupling.vblock
         return self._coupling
 

@@ -608,7 +608,14 @@ class ProjectiveDynamics(Solver):
         if self.collision is None:
             return None
         if self._coupling is None or self._coupling.stage is not self.collision:
+            if self.operator is not None and self._coupling in self.operator.extra:
+                self.operator.extra.remove(self._coupling)
             self._coupling = ContactCoupling(self.model, self.collision, self.contact_stiffness)
+        # self-contacts in the global matrix: their off-diagonal blocks as an operator term
+        # (not with ``direct``, whose Woodbury update takes single-vertex blocks only)
+        if (self._coupling.self_record is not None and not self.direct
+                and self.operator is not None and self._coupling not in self.operator.extra):
+            self.operator.extra.append(self._coupling)
         return self._coupling
 
     def _outer_omegas(self):
