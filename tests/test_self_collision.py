@@ -389,6 +389,19 @@ def test_record_overflow_is_reported_and_the_record_regrows(capsys):
     assert over[-1] == 0 and max(over) > 0  # dropped early, nothing at the end
 
 
+def test_solve_self_contacts_overflow_is_reported_and_regrows(capsys):
+    """The solve's own self-contact record with room for 4 entries: the dropped pairs are
+    counted in the solver's stats, reported on stderr, and the room doubles at frame ends."""
+    scene = fold(solver="implicit", res=8, frames=30, size=0.6, angle=150.0)
+    cc = scene.solver._contact()
+    cc._grow_self(4)
+    scene.run(None, energy=False, progress=False)
+    err = capsys.readouterr().err
+    assert "did not fit the solve's record" in err
+    assert cc.self_record.vertex.shape[0] >= 16
+    assert scene.solver.stats["self_solve_dropped"] > 0
+
+
 @pytest.mark.parametrize("solver_name", ["pd", "implicit"])
 def test_self_contacts_inside_the_solve_keep_a_fold_calm(solver_name):
     """Self-contacts as penalty terms of the implicit and projective solves (the stage's

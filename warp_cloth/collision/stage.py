@@ -237,7 +237,11 @@ class CollisionStage:
         thing to report: self-collision steps that returned the whole cloth to its start, and
         contacts dropped for want of room (the record then doubles: ``regrown`` True, so a
         recorded graph must be recorded again)."""
-        return [] if self.self_collision is None else self.self_collision.frame_end()
+        out = [] if self.self_collision is None else self.self_collision.frame_end()
+        coupling = getattr(self, "solve_coupling", None)  # self-contacts inside a solve
+        if coupling is not None:
+            out += coupling.self_frame_end()
+        return out
 
     @property
     def stats(self) -> dict:

@@ -243,6 +243,11 @@ def newton_contact_kernel(
 
 
 @wp.kernel
+def add_overflow_kernel(rec: ContactRecord, total: wp.array(dtype=int)):
+    total[0] = total[0] + rec.overflow[0]
+
+
+@wp.kernel
 def self_matvec_kernel(rec: ContactRecord, on: wp.array(dtype=int),
                        inv_mass: wp.array(dtype=float), kappa_dt2: float, num_threads: int,
                        x: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
@@ -484,10 +489,11 @@ class ContactCoupling:
         if sc is not None and getattr(stage, "self_in_solve", False):
             from ..collision.record import make_record
 
-            self.self_record = make_record(sc.capacity, self.device)
-            self.self_on = wp.zeros(sc.capacity, dtype=int, device=self.device)
-            self.self_threads = max(1, -(-sc.capacity // BATCH))
             self._dt = 1.0
+            self._grow_self(sc.capacity)
+            self.self_dropped = wp.zeros(1, dtype=int, device=self.device)  # over all steps
+            self._dropped_seen = 0
+            stage.solve_coupling = self  # its `frame_end` reports and regrows this record
 
     @property
     def record(self):
@@ -505,15 +511,11 @@ class ContactCoupling:
         wp.copy(self.x_pred, x_pred)
         if self.self_record is not None:
             sc = self.stage.self_collision
-            if self.self_record.vertex.shape[0] != sc.capacity:  # the stage's record grew
-                from ..collision.record import make_record
-
-                self.self_record = make_record(sc.capacity, self.device)
-                self.self_on = wp.zeros(sc.capacity, dtype=int, device=self.device)
-                self.self_threads = max(1, -(-sc.capacity // BATCH))
             self.self_record.count.zero_()
             self.self_record.overflow.zero_()
             sc.detect(x_start, x_pred, sc.thickness + self.stage.solve_margin, self.self_record)
+            wp.launch(add_overflow_kernel, 1, [self.self_record, self.self_dropped],
+                      device=self.device)
             self.self_on.zero_()
 
     # ------------------------------------------------------------------ Newton
@@ -532,6 +534,38 @@ class ContactCoupling:
                       [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
                        self.self_threads, b, diag, self.vblock, self.nblock, self.active,
                        self.self_on], device=self.device)
+
+    def _grow_self(self, capacity: int) -> None:
+        """A self-contact record of ``capacity`` entries (allocation: outside a captured step)."""
+        from ..collision.record import make_record
+
+        self.self_record = make_record(int(capacity), self.device)
+        self.self_on = wp.zeros(int(capacity), dtype=int, device=self.device)
+        self.self_threads = max(1, -(-int(capacity) // BATCH))
+
+    def self_frame_end(self) -> list:
+        """Self-contacts of the solve dropped for want of room since the last call (host read,
+        once a frame, `CollisionStage.frame_end`): the record then doubles. Dropped pairs are
+        still resolved after the solve. ``(message, regrown)`` pairs."""
+        if self.self_record is None:
+            return []
+        n = int(self.self_dropped.numpy()[0])
+        new, self._dropped_seen = n - self._dropped_seen, n
+        if new <= 0:
+            return []
+        cap = 2 * self.self_record.vertex.shape[0]
+        self._grow_self(cap)
+        return [(f"{new} self-contacts did not fit the solve's record (they were resolved after "
+                 f"the solve); its room is doubled to {cap} entries", True)]
+
+    @property
+    def self_stats(self) -> dict:
+        """The last step's self-contacts in the solve, and those dropped over all steps."""
+        if self.self_record is None:
+            return {}
+        return {"self_solve_contacts": min(int(self.self_record.count.numpy()[0]),
+                                           self.self_record.vertex.shape[0]),
+                "self_solve_dropped": int(self.self_dropped.numpy()[0])}
 
     # the operator's extra term (`SpringSystemOperator.extra`)
     def matvec_add(self, x, out) -> None:

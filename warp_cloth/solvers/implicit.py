@@ -665,6 +665,7 @@ class ImplicitEuler(Solver):
         if self._coupling is not None and "contacts" not in self._stats:
             self._stats.update(self.collision.stats)
             self._stats["contacts_active"] = int(self._coupling.active.numpy()[0])
+            self._stats.update(self._coupling.self_stats)
         return self._stats
 
     @stats.setter

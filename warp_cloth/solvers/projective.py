@@ -799,6 +799,7 @@ class ProjectiveDynamics(Solver):
                 "residual": float(self._res.numpy()[1]),
                 "unconverged_steps": int(self._short.numpy()[0])}),
             **(self.collision.stats if self._coupling is not None else {}),
+            **(self._coupling.self_stats if self._coupling is not None else {}),
         }
 
     @stats.setter
