@@ -48,6 +48,46 @@ def test_tradeoff_end_to_end(tmp_path, monkeypatch):
     assert len(cached) == 1 and cached[0].startswith("ref_hanging_")
 
 
+#: the columns of tradeoff's CSV that do not depend on timing (wall time and the frontier do)
+ACCURACY = ("rms_error", "max_error", "max_strain", "energy_drift")
+IDENTITY = ("method", "label", "substeps", "options", "strain_limit", "diverged", "diverged_frame")
+
+
+def test_tradeoff_cells_on_the_pool_match_the_sequential_run(tmp_path, monkeypatch, capsys):
+    """``--workers 2`` (a process pool: Ray is not in the test environment) runs the same
+    configurations against the same reference: same rows in the same order, same errors; only
+    the timings (and so the frontier) may differ, and the output says they were concurrent."""
+    monkeypatch.setenv("WARP_CLOTH_CACHE", str(tmp_path / "cache"))
+    common = ["--res", "3", "--duration", "0.1", "--ref-substeps", "2", "--repeats", "1",
+              "--methods", "explicit,pbd", "--quick", "--no-progress"]
+    assert tradeoff.main(common + ["--out-dir", str(tmp_path / "seq")]) == 0
+    seq_out = capsys.readouterr().out
+    assert tradeoff.main(common + ["--out-dir", str(tmp_path / "par"), "--workers", "2"]) == 0
+    par_out = capsys.readouterr().out
+    seq = list(csv.DictReader(open(tmp_path / "seq" / "tradeoff_hanging.csv")))
+    par = list(csv.DictReader(open(tmp_path / "par" / "tradeoff_hanging.csv")))
+    assert len(seq) == 5 and list(par[0]) == list(seq[0])  # same columns
+    assert [tuple(r[k] for k in IDENTITY) for r in par] == [tuple(r[k] for k in IDENTITY) for r in seq]
+    for a, b in zip(seq, par):
+        for k in ACCURACY:
+            assert math.isclose(float(a[k]), float(b[k]), rel_tol=1e-6, abs_tol=1e-12), (a["label"], k)
+    assert all(math.isfinite(float(r["wall_per_sim_s"])) for r in par)
+    assert "2 concurrent workers" in par_out and "concurrent" not in seq_out
+    assert "--workers 2" in (tmp_path / "par" / "tradeoff_hanging.md").read_text()
+    assert len(os.listdir(tmp_path / "cache")) == 1  # one reference, computed once, shared
+
+
+def test_tradeoff_rejects_a_non_positive_worker_count(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("WARP_CLOTH_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "bo"
+    with pytest.raises(SystemExit) as e:  # (a tiny run, should the check ever let it through)
+        tradeoff.main(["--workers", "0", "--res", "3", "--duration", "0.1", "--ref-substeps", "2",
+                       "--methods", "explicit", "--quick", "--no-progress", "--out-dir", str(out)])
+    assert e.value.code == 2
+    assert "--workers must be a positive integer, got 0" in capsys.readouterr().err
+    assert not os.path.exists(out) and not os.path.exists(tmp_path / "cache")  # before any work
+
+
 def test_stability_classifier_on_synthetic_trajectories():
     """Each class from a made-up trajectory: a cell is stable only when finite, without energy
     gain and within the stretch factor of the reference; the first failing test wins."""

@@ -24,6 +24,15 @@ Outputs (in ``--out-dir``): ``tradeoff_<scene>.csv``, ``tradeoff_<scene>.md`` (t
 frontier marked) and, with matplotlib installed, ``tradeoff_<scene>.png`` (error against time per
 simulated second, log-log, one point per configuration coloured by method, frontier joined).
 ``--quick`` is a small smoke version that finishes in under two minutes.
+
+``--workers N`` (or ``--address ADDR``, a Ray cluster) runs the configurations through the sweep
+executor (`warp_cloth.sweep.map_cells`: Ray when installed or an address is given, else a local
+pool of N spawned processes); the reference is computed first, once, in this process and handed
+to every cell, and the rows come back in the sequential order. Cells that run at the same time
+share the machine, so their wall times are noisier and each is slower than it would be alone:
+the output says how many workers measured them. Ratios between rows of one such run stay roughly
+comparable; absolute times, or times compared with a sequential run, less so. Without either
+option the configurations run one after another in this process, each timed alone.
 """
 
 from __future__ import annotations
@@ -38,8 +47,8 @@ import numpy as np
 
 from ..util import quiet_warp
 from .common import markdown_table
-from .harness import (METHOD_COLOURS, Config, have_matplotlib, pareto, reference, run_config,
-                      write_csv)
+from .harness import (METHOD_COLOURS, Config, Result, have_matplotlib, pareto, reference,
+                      run_config, write_csv)
 
 
 def ladder(methods, base_substeps: int, stiffness: float, quick: bool):
@@ -80,6 +89,43 @@ def ladder(methods, base_substeps: int, stiffness: float, quick: bool):
             out.append(Config("pd", {"iterations": it, "linear": lin}, substeps=sub))
         out.append(Config("pd", {"iterations": 10, "linear": "chebyshev"}, substeps=1, strain_limit=lim))
     return out
+
+
+def _crashed_cell(args, msg):
+    """A configuration whose worker process died: a diverged row at no known frame (shown as
+    ``crashed`` in the table), with the message on stderr."""
+    cfg = args[2]
+    print(f"warning: configuration {cfg.label}: {msg}; reported as crashed", file=sys.stderr)
+    return Result(cfg, True, None, math.nan, math.nan, math.nan, math.nan, math.nan)
+
+
+def parallel_cells(scene, params, configs, frames, fps, sample, ref_positions, size, repeats,
+                   workers, address, on_done=None) -> list:
+    """`run_config` for every configuration on `warp_cloth.sweep.map_cells` (Ray when installed,
+    else a process pool), against ``ref_positions`` (computed once, by the caller). Results in
+    the order of ``configs``."""
+    from ..sweep import map_cells
+
+    cells = [(scene, params, cfg, frames, fps, sample, ref_positions, size, repeats)
+             for cfg in configs]
+    methods = list(dict.fromkeys(cfg.method for cfg in configs))
+    return map_cells(run_config, cells, workers=workers, address=address,
+                     warm_with=(scene, methods), on_crash=_crashed_cell, on_done=on_done)
+
+
+def concurrency_note(workers, address, cells: int) -> str:
+    """The line that says the timings were measured with cells running concurrently."""
+    from ..sweep import resolve_executor
+
+    executor, address = resolve_executor("auto", address)
+    if address:
+        how = f"cells running concurrently on the Ray cluster {address}"
+    else:
+        n = min(int(workers or max(1, os.cpu_count() or 1)), cells)
+        how = f"{n} concurrent workers ({'local Ray' if executor == 'ray' else 'process pool'})"
+    return (f"Timings measured with {how}: concurrent cells share the machine, so ratios "
+            f"between rows of this table are still roughly comparable, absolute times (and "
+            f"comparisons with a sequential run) less so.")
 
 
 def plot(path, results, front, title):
@@ -130,7 +176,17 @@ def main(argv=None) -> int:
     p.add_argument("--out-dir", default="bench_out")
     p.add_argument("--quick", action="store_true", help="small smoke run, under two minutes")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--workers", type=int, default=None,
+                   help="run the configurations in N worker processes (Ray when installed, else a "
+                        "local process pool; default: one after another in this process). "
+                        "Concurrent cells share the machine: their timings are noisier and slower "
+                        "than alone (ratios between rows stay roughly comparable, absolute times "
+                        "less so); the output says how many workers measured them")
+    p.add_argument("--address", default=None,
+                   help="run the configurations on this Ray cluster (timings as with --workers)")
     args = p.parse_args(argv)
+    if args.workers is not None and args.workers < 1:
+        p.error(f"--workers must be a positive integer, got {args.workers}")
     quiet_warp()
     from ..solvers import available
     from ..solvers.explicit import SymplecticEuler
@@ -165,15 +221,31 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     ref = reference(args.scene, params, frames, args.fps, sample, ref_sub, validate=True, log=log)
     configs = ladder(methods, base, args.stiffness, args.quick)
-    results = []
-    for k, cfg in enumerate(configs):
+
+    def progress(k, cfg):
         if not args.no_progress and sys.stderr.isatty():
             sys.stderr.write(f"\r[{k + 1}/{len(configs)}] {cfg.label:<70.70}")
             sys.stderr.flush()
         elif not args.no_progress:
             log(f"[{k + 1}/{len(configs)}] {cfg.label}")
-        results.append(run_config(args.scene, params, cfg, frames, args.fps, sample,
-                                  ref["positions"], size, repeats))
+
+    parallel = args.workers is not None or args.address is not None
+    if parallel:
+        finished = []
+
+        def on_done(i, res):
+            finished.append(i)
+            progress(len(finished) - 1, configs[i])
+
+        results = parallel_cells(args.scene, params, configs, frames, args.fps, sample,
+                                 ref["positions"], size, repeats, args.workers, args.address,
+                                 on_done=on_done)
+    else:
+        results = []
+        for k, cfg in enumerate(configs):
+            progress(k, cfg)
+            results.append(run_config(args.scene, params, cfg, frames, args.fps, sample,
+                                      ref["positions"], size, repeats))
     if not args.no_progress and sys.stderr.isatty():
         sys.stderr.write("\n")
     front = pareto(results)
@@ -186,14 +258,17 @@ def main(argv=None) -> int:
     for i, r in enumerate(results):
         table.append(["*" if i in front else "", r.config.method, r.config.label, r.wall_per_sim_s,
                       r.rms_error, r.max_error, r.max_strain, r.energy_drift,
-                      f"frame {r.diverged_frame}" if r.diverged else "no"])
+                      ("crashed" if r.diverged_frame is None else f"frame {r.diverged_frame}")
+                      if r.diverged else "no"])
     min_err = min((r.rms_error for r in results if not r.diverged), default=math.nan)
     head = (
         f"# Speed/accuracy trade-off: {args.scene}\n\n"
         f"Command: `warp-cloth bench tradeoff --scene {args.scene} --res {res} --duration {duration:g} "
         f"--fps {args.fps:g} --stiffness {args.stiffness:g} --bending {args.bending} "
         f"--bend-stiffness {args.bend_stiffness:g} --repeats {repeats} --ref-substeps {ref_sub}"
-        f"{' --quick' if args.quick else ''}`\n\n"
+        f"{' --quick' if args.quick else ''}"
+        f"{f' --workers {args.workers}' if args.workers is not None else ''}"
+        f"{f' --address {args.address}' if args.address is not None else ''}`\n\n"
         f"{(res + 1) ** 2 if args.scene == 'hanging' else ''} vertices, {duration:g} s simulated at "
         f"{args.fps:g} fps; errors at t = {', '.join(f'{f / args.fps:.2f}' for f in sample)} s, relative to "
         f"the cloth size {size:g} m. Reference: implicit Euler at {ref_sub}, {2 * ref_sub} and {4 * ref_sub} "
@@ -201,6 +276,8 @@ def main(argv=None) -> int:
         f"({float(ref['halving_max']):.2e} max), "
         f"{'below' if float(ref['halving_rms']) < min_err else 'NOT below'} the smallest RMS error measured "
         f"({min_err:.2e}). `*` = Pareto frontier (nothing else is both faster and more accurate).\n\n")
+    if parallel:
+        head += concurrency_note(args.workers, args.address, len(configs)) + "\n\n"
     md = head + markdown_table(hdr, table) + "\n"
     with open(stem + ".md", "w") as fh:
         fh.write(md)
