@@ -510,12 +510,14 @@ class ContactCoupling:
         self.active.zero_()
         wp.copy(self.x_pred, x_pred)
         if self.self_record is not None:
-            sc = self.stage.self_collision
+            sc = self.stage.self_collision  # (None, or in_solve off, when switched off since)
             self.self_record.count.zero_()
             self.self_record.overflow.zero_()
-            sc.detect(x_start, x_pred, sc.thickness + self.stage.solve_margin, self.self_record)
-            wp.launch(add_overflow_kernel, 1, [self.self_record, self.self_dropped],
-                      device=self.device)
+            if sc is not None and self.stage.self_in_solve:
+                sc.detect(x_start, x_pred, sc.thickness + self.stage.solve_margin,
+                          self.self_record)
+                wp.launch(add_overflow_kernel, 1, [self.self_record, self.self_dropped],
+                          device=self.device)
             self.self_on.zero_()
 
     # ------------------------------------------------------------------ Newton
