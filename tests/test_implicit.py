@@ -410,3 +410,23 @@ def test_jacobi_type_inner_solvers_stay_convergent_with_bending(linear):
     x = st.positions()
     assert np.all(np.isfinite(x)) and np.abs(x).max() < 1.1
     assert s.stats["alpha"] < 0.66
+
+
+def test_small_steps_tighten_the_newton_tolerance(monkeypatch):
+    """Issue 14's map cells k = 10 and 1e3 N/m at dt = 1/2000 s: with the fixed 1e-4 m tolerance
+    (40 times the step's gravity displacement dt^2 g) Newton stopped almost unsolved and the soft
+    cloth gained energy ("E" cells); the tolerance of a step is now capped at
+    ``max(0.2 |g| dt^2, 1e-6 m)``, and the same cells keep their energy (S)."""
+    from warp_cloth.bench.stability import run_cell
+
+    model = hanging_model(res=4)
+    s = ImplicitEuler(model)
+    assert s.step_tolerances(1 / 60) == (1e-4, s.step_tolerance)  # unchanged at frame rates
+    tol, step_tol = s.step_tolerances(1 / 2000)
+    assert tol == pytest.approx(max(0.2 * 9.81 / 2000 ** 2, 1e-6), rel=1e-3)
+    assert step_tol == pytest.approx(max(0.1 * tol, s._float_floor))
+    cell = run_cell("implicit", 10.0, 1 / 2000, 1.0, 6, 0.25, ref_strain=0.185)
+    assert cell["status"] == "S", cell
+    monkeypatch.setattr(ImplicitEuler, "step_tolerances",
+                        lambda self, dt: (self.tolerance, self.step_tolerance))
+    assert run_cell("implicit", 10.0, 1 / 2000, 1.0, 6, 0.25, ref_strain=0.185)["status"] == "E"
