@@ -80,10 +80,11 @@ class CollisionStage:
             thickness plus ``solve_margin`` become penalty terms of the solve with their full
             Hessian (`warp_cloth.solvers.contact_coupling`), so the solve keeps the layers
             apart and the response after it has little left to do. Measured on the fold scene
-            (largest one-frame energy gain, max strain, ms/frame): implicit 0.57 J, 8.6 %, 398
-            without, 0.006 J, 3.8 %, 505 with; projective dynamics 2.6 J, 38 % and 173 steps
-            that returned the whole cloth to its start without, 0.0015 J, 0.9 %, none and
-            235 ms/frame (471) with. False: self-contacts only after the solve.
+            (largest one-frame energy gain, max strain; time per frame with / without, both
+            timed beside another run): implicit 0.57 J, 8.6 % without, 0.006 J, 3.8 % with
+            (1.27x the time); projective dynamics 2.6 J, 38 % and 173 steps that returned the
+            whole cloth to its start without, 0.0015 J, 0.9 % and none with (0.5x the time).
+            False: self-contacts only after the solve.
         **contact_options: `ObstacleContact` options (``thickness``, ``friction``,
             ``restitution``, ``ccd``, ``slack``, ...), when ``obstacles`` are shapes.
 
