@@ -238,7 +238,7 @@ def thin(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
                           self_collision=self_collision)
 
 
-def fold(*, solver: str = "implicit", solver_options: dict | None = None, fps: float = 60.0,
+def fold(*, solver: str = "pd", solver_options: dict | None = None, fps: float = 60.0,
          frames: int = 120, substeps=None, corrections=(), obstacles=(),
          strain_bound: float = 10.0, thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
          restitution: float = 0.0, angle: float = 100.0, self_collision: bool = True,
@@ -268,7 +268,7 @@ def fold(*, solver: str = "implicit", solver_options: dict | None = None, fps: f
     return scene
 
 
-def twist(*, solver: str = "implicit", solver_options: dict | None = None, fps: float = 60.0,
+def twist(*, solver: str = "pd", solver_options: dict | None = None, fps: float = 60.0,
           frames: int = 600, substeps=None, corrections=(), obstacles=(),
           strain_bound: float = 10.0, thickness: float = DEFAULT_THICKNESS, res: int = 49,
           size: float = 1.0, rate: float = math.pi / 3.0, height: float = 1.0,
@@ -313,7 +313,7 @@ def twist(*, solver: str = "implicit", solver_options: dict | None = None, fps: 
     return scene
 
 
-def stack(*, solver: str = "implicit", solver_options: dict | None = None, fps: float = 60.0,
+def stack(*, solver: str = "pd", solver_options: dict | None = None, fps: float = 60.0,
           frames: int = 150, substeps=None, corrections=(), obstacles=(),
           strain_bound: float = 10.0, thickness: float = DEFAULT_THICKNESS, sheets: int = 3,
           res: int = 16, size: float = 0.8, radius: float = 0.2, gap: float = 0.08,
