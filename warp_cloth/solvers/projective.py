@@ -505,6 +505,7 @@ class ProjectiveDynamics(Solver):
         self.contact_residual = positive_finite(contact_residual, "pd: contact_residual", "metres")
         self._more_flag = wp.zeros(1, dtype=wp.int32, device=model.device)
         self._more = wp.zeros(3, dtype=wp.int32, device=model.device)
+        self._more_step = self._more[0:1]  # this step's count (a view made once, not per step)
         self._more_res = wp.zeros(1, dtype=float, device=model.device)
         self._more_seen = 0
         self.tolerance = (None if tolerance is None
@@ -716,7 +717,7 @@ class ProjectiveDynamics(Solver):
                       [state.x, self.dx, self.x0, state.v, m.inv_mass, decay, 1.0 / dt,
                        1 if k == K - 1 else 0, self._omegas[k], self.x_prev], device=d)
         if cc is not None and self.contact_iterations > 0 and not self.direct:
-            self._more[0:1].zero_()
+            self._more_step.zero_()
             self._evaluate(state, dt, cc)
             wp.capture_while(self._more_flag, self._contact_iteration, state=state, dt=dt, cc=cc)
         if cc is not None:
