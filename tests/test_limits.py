@@ -181,11 +181,35 @@ def test_strain_limit_after_explicit_solver_keeps_soft_cloth_stiff():
     assert jac[0] and jac[1] < 0.5 * free[1]
 
 
+def test_check_every_counts_its_sweeps_and_holds_the_tolerance():
+    """Checking every 3 sweeps runs the same sweeps rounded up to a multiple of 3 (a sweep moves
+    only edges outside the bounds, so the sweeps it adds after convergence change little), and
+    the pass still ends inside the tolerance."""
+    model = hanging_model(res=10)
+    rng = np.random.default_rng(5)
+    x0 = model.mesh.vertices * np.array([1.2, 1.0, 0.9]) + 0.01 * rng.standard_normal((121, 3))
+    x0[model.pins] = model.mesh.vertices[model.pins]
+    out = {}
+    for k in (1, 3):
+        lim = StrainLimit(model, 0.95, 1.05, check_every=k)
+        st = state_at(model, x0)
+        lim.apply(st, None, 0.01)
+        r = edge_strains(model, st.x.numpy()) + 1.0
+        assert r.max() <= 1.05 + 1e-3 and r.min() >= 0.95 - 1e-3
+        out[k] = lim.stats
+    n1 = out[1]["sweeps_total"]
+    assert n1 >= 4
+    assert out[3]["sweeps_total"] == 3 * math.ceil(n1 / 3) == out[3]["sweeps_max"]
+    assert out[1]["steps"] == out[3]["steps"] == 1 and out[3]["short_steps"] == 0
+
+
 def test_bad_arguments_raise():
     model = hanging_model(res=4)
     for args, kw in (((1.2, 1.1), {}), ((-0.1, 1.1), {}), ((math.nan, 1.0), {}),
                      ((0.9, math.nan), {}), ((0.9, 1.1), dict(iterations=0)),
-                     ((0.9, 1.1), dict(relaxation=-1.0)), ((0.0, 0.0), {}), (("a", 1.0), {})):
+                     ((0.9, 1.1), dict(relaxation=-1.0)), ((0.0, 0.0), {}), (("a", 1.0), {}),
+                     ((0.9, 1.1), dict(check_every=0)), ((0.9, 1.1), dict(check_every=1.5)),
+                     ((0.9, 1.1), dict(check_every=True))):
         with pytest.raises(ValueError):
             StrainLimit(model, *args, **kw)
         with pytest.raises(ValueError):

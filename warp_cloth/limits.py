@@ -38,7 +38,9 @@ with Gauss-Seidel and 8.2 % with Jacobi, at 1.25x the cost. `AreaLimit` uses Jac
 length or area) a pass does not run a fixed count: a check kernel counts the elements outside
 the bounds widened by the tolerance, and a device-side loop (`warp.capture_while`, a conditional
 loop inside a recorded graph, so the step stays capturable) sweeps again while any is, up to
-``iterations`` sweeps. A pass whose elements are inside costs one check. A pass that reaches the
+``iterations`` sweeps; the check runs after every ``check_every`` sweeps (3 for `StrainLimit`:
+a check costs about a sweep, and a sweep past convergence moves almost nothing). A pass whose
+elements are inside costs one check. A pass that reaches the
 cap with elements still outside is counted on the device and reported once a frame by
 `frame_end` (the scene runner prints a warning with the frame); nothing stops short silently.
 Gauss-Seidel is accelerated by over-relaxation (``over_relaxation``, default 1.8: a violated
@@ -54,7 +56,7 @@ them 3.2x on the default hanging scene under PD.
 friction holds touching vertices where they are, which stretched edges past the limit (2.5 %
 under a 1 % limit on that scene). So a limit with a tolerance runs again after the stage
 (`after_contact`): one check, and only where something is outside, sweeps with the stage's
-contact projection after each, ending with both the bound and non-penetration.
+contact projection after each sweep, ending with both the bound and non-penetration.
 
 Velocities are corrected consistently with the positions: every position change ``dx`` adds
 ``dx / dt`` to the velocity (the position-based velocity update of the notes, L1344), so the
@@ -64,7 +66,7 @@ it adds no energy (tested: a falling, limited sheet's total energy never rises).
 Limitations: a taut sheet needs many sweeps (Gauss-Seidel converges slowly on long chains), so a
 limited step costs more than the solver's step on stiff hanging scenes; ``tolerance=None``
 restores the old fixed count. Outside a recorded graph the adaptive loop reads its condition on
-the host after each sweep (an int on the CPU, a device sync on CUDA). On a GPU the float atomics
+the host after each check (an int on the CPU, a device sync on CUDA). On a GPU the float atomics
 of the Jacobi mode sum in an arbitrary order, so results can differ in the last bits from run to
 run (on the CPU they are deterministic).
 """
@@ -235,21 +237,23 @@ C_SWEEPS, C_COND, C_SWEEPS_TOTAL, C_SHORT_TOTAL, C_STEPS_TOTAL, C_SWEEPS_MAX, C_
 
 @wp.kernel
 def limit_loop_kernel(counts: wp.array(dtype=wp.int32), excess: wp.array(dtype=float),
-                      cap: int, begin: int):
+                      cap: int, begin: int, sweeps: int):
     """Loop control of an adaptive limit, after each check: go on (``counts[C_COND] = 1``) while
     elements are outside the tolerance and fewer than ``cap`` sweeps ran; at the end of a step
     that stops short, count it (``C_SHORT_TOTAL``) and keep its excess (``excess[1]`` the
-    largest over the run, ``excess[2]`` the last). ``begin``: the check before any sweep."""
+    largest over the run, ``excess[2]`` the last). ``begin``: the check before any sweep;
+    ``sweeps``: the sweeps between two checks (the loop goes on only while another group of
+    them stays within ``cap``)."""
     if begin != 0:
         counts[C_SWEEPS] = 0
         counts[C_STEPS_TOTAL] = counts[C_STEPS_TOTAL] + 1
     else:
-        counts[C_SWEEPS] = counts[C_SWEEPS] + 1
-        counts[C_SWEEPS_TOTAL] = counts[C_SWEEPS_TOTAL] + 1
+        counts[C_SWEEPS] = counts[C_SWEEPS] + sweeps
+        counts[C_SWEEPS_TOTAL] = counts[C_SWEEPS_TOTAL] + sweeps
     k = counts[C_SWEEPS]
     bad = counts[C_BAD]
     counts[C_BAD] = 0
-    if bad > 0 and k < cap:
+    if bad > 0 and k + sweeps <= cap:
         counts[C_COND] = 1
     else:
         counts[C_COND] = 0
@@ -437,10 +441,13 @@ def _check_bounds(name, lo, hi, lo_name, hi_name) -> tuple[float, float]:
 class _JacobiLimit:
     """Shared driver: accumulators and counters allocated once.
 
-    With a ``tolerance`` a pass is adaptive: a check before the first sweep and after each one
-    counts the elements still outside the bounds widened by the tolerance, and a device-side
-    loop (`warp.capture_while`: a conditional loop in a recorded graph, no host read) sweeps
-    again while any is and fewer than ``iterations`` sweeps ran. A step that stops at the cap
+    With a ``tolerance`` a pass is adaptive: a check before the first sweep and after every
+    ``check_every`` sweeps counts the elements still outside the bounds widened by the
+    tolerance, and a device-side loop (`warp.capture_while`: a conditional loop in a recorded
+    graph, no host read) sweeps again while any is and another ``check_every`` sweeps stay
+    within ``iterations`` (so a pass runs a multiple of ``min(check_every, iterations)`` sweeps,
+    at most ``iterations``; a sweep moves only elements outside their bounds, so the sweeps
+    after convergence change little). A step that stops at the cap
     with elements still outside is counted (``stats["short_steps"]``) and reported by
     `frame_end` (the scene runner prints it as a warning with the frame). Outside a recorded
     graph the loop condition is read on the host after each sweep (one int on the CPU; a
@@ -449,13 +456,18 @@ class _JacobiLimit:
 
     capturable = True
 
-    def __init__(self, model, iterations, relaxation, tolerance=None):
+    def __init__(self, model, iterations, relaxation, tolerance=None, check_every=1):
         self.model = model
         self.device = model.device
         name = type(self).__name__
         self.iterations = _check_iterations(name, iterations)
         self.relaxation = _check_relaxation(name, relaxation)
         self.tolerance = _check_tolerance(name, tolerance)
+        if (isinstance(check_every, bool) or not isinstance(check_every, (int, np.integer))
+                or check_every < 1):
+            raise ValueError(f"{name}: check_every must be an integer >= 1, got {check_every!r}")
+        self.check_every = int(check_every)
+        self._group = min(self.check_every, self.iterations)  # sweeps between two checks
         n = model.num_vertices
         self._delta = wp.zeros(n, dtype=wp.vec3, device=self.device)
         self._count = wp.zeros(n, dtype=float, device=self.device)
@@ -487,7 +499,7 @@ class _JacobiLimit:
                 self._sweep(state, dt)
         else:
             self._check(state.x)
-            wp.launch(limit_loop_kernel, 1, [self._counts, self._excess, self.iterations, 1],
+            wp.launch(limit_loop_kernel, 1, [self._counts, self._excess, self.iterations, 1, self._group],
                       device=self.device)
             wp.capture_while(self._cond, self._adaptive_sweep, state=state, dt=dt)
         self._finish(state, dt)
@@ -509,21 +521,27 @@ class _JacobiLimit:
             self._contact = None
 
     def _adaptive_sweep(self, state, dt):
-        self._sweep(state, dt)
-        if self._contact is not None:
-            stage, x_start = self._contact
-            stage.project_positions(state.x, x_start, dt, state.time)
+        k = self._group
+        self._group_begin(state)
+        for _ in range(k):
+            self._sweep(state, dt, True)
+            if self._contact is not None:
+                stage, x_start = self._contact
+                stage.project_positions(state.x, x_start, dt, state.time)
         self._check(state.x)
-        wp.launch(limit_loop_kernel, 1, [self._counts, self._excess, self.iterations, 0],
+        wp.launch(limit_loop_kernel, 1, [self._counts, self._excess, self.iterations, 0, k],
                   device=self.device)
 
     def _begin(self, state):
         pass
 
+    def _group_begin(self, state):
+        pass
+
     def _finish(self, state, dt):
         pass
 
-    def _sweep(self, state, dt):
+    def _sweep(self, state, dt, grouped=False):
         """One Jacobi iteration: every element's correction, then the blend (and ``v``)."""
         self._launch_elements(state.x)
         wp.launch(limit_apply_kernel, self.model.num_vertices,
@@ -580,16 +598,26 @@ class StrainLimit(_JacobiLimit):
             several times slower on long chains of violated edges (see the module docstring).
         tethers: with Gauss-Seidel and pins, each free vertex is also kept within
             ``sigma_max`` times its rest geodesic distance of its ``tethers`` nearest pins
-            (long-range attachments, Kim, Chentanez and Müller 2012; one per-vertex launch per
-            sweep; default 2, 0 for none). The geodesic is the straight rest distance when the
+            (long-range attachments, Kim, Chentanez and Müller 2012; one per-vertex launch before
+            every ``check_every`` sweeps, and before every sweep without a tolerance; default 2,
+            0 for none; once per pass instead took twice the sweeps under PD below, once per
+            3 sweeps 9 % more than before every sweep, for a launch that costs about what the
+            edge sweep costs). The geodesic is the straight rest distance when the
             rest mesh is flat and convex (every built-in scene), else the shortest path along
             edges (longer, so looser). Measured on the default hanging scene under PD (40
-            frames): 5,156 sweeps and 4 short steps with tethers, 16,517 and 18 without.
+            frames): 5,742 sweeps and 4 short steps with tethers, 16,611 and 18 without.
         over_relaxation: ``omega`` in [1, 2) of Gauss-Seidel (successive over-relaxation): a
             violated edge is moved ``omega`` times its projection, past its bound into the
             allowed range (default 1.8: measured on Newton's cloth_hanging scene with the
             explicit solver, 9,252 sweeps in 60 frames against 19,560 with 1.0, the same
             energy; `warp-cloth bench limits`).
+        check_every: sweeps between two checks of the tolerance (default 3). A check costs
+            about what a sweep costs (one pass over the edges); on Newton's cloth_hanging scene
+            with the explicit solver, 3 ran the same sweeps (about 150 a frame) with a third
+            of the checks, and with the tethers once per 3 sweeps 35 -> 22 ms a frame
+            (`warp-cloth bench limits`); under PD on the default hanging scene (40 frames),
+            5,742 sweeps against 5,156 checking and tethering at every sweep, 4 short steps
+            either way.
 
     ``sigma_min = sigma_max = 1`` with ``tolerance=None``, ``tethers=0`` and
     ``over_relaxation=1`` is exactly (bit for bit, on the CPU) a plain-PBD stretch pass with the
@@ -601,10 +629,11 @@ class StrainLimit(_JacobiLimit):
 
     def __init__(self, model, sigma_min: float = 0.0, sigma_max: float = math.inf, *,
                  tolerance: float | None = 1e-3, iterations: int = 500, relaxation: float = 0.0,
-                 gauss_seidel: bool = True, tethers: int = 2, over_relaxation: float = 1.8):
+                 gauss_seidel: bool = True, tethers: int = 2, over_relaxation: float = 1.8,
+                 check_every: int = 3):
         self.sigma_min, self.sigma_max = _check_bounds("StrainLimit", sigma_min, sigma_max,
                                                        "sigma_min", "sigma_max")
-        super().__init__(model, iterations, relaxation, tolerance)
+        super().__init__(model, iterations, relaxation, tolerance, check_every)
         self.gauss_seidel = bool(gauss_seidel)
         if isinstance(tethers, bool) or int(tethers) != tethers or tethers < 0:
             raise ValueError(f"StrainLimit: tethers must be an integer >= 0, got {tethers!r}")
@@ -662,11 +691,16 @@ class StrainLimit(_JacobiLimit):
             wp.launch(limit_velocity_kernel, self.model.num_vertices,
                       [state.x, state.v, self._x_before, 1.0 / dt], device=self.device)
 
-    def _sweep(self, state, dt):
+    def _group_begin(self, state):
+        if self._tether is not None:
+            wp.launch(tether_kernel, self.model.num_vertices, [state.x, *self._tether],
+                      device=self.device)
+
+    def _sweep(self, state, dt, grouped=False):
         if not self.gauss_seidel:
             return super()._sweep(state, dt)
         m, offs = self.model, self.color_offsets
-        if self._tether is not None:
+        if self._tether is not None and not grouped:
             wp.launch(tether_kernel, m.num_vertices, [state.x, *self._tether], device=self.device)
         for c in range(len(offs) - 1):
             wp.launch(strain_limit_gs_kernel, offs[c + 1] - offs[c],
@@ -691,7 +725,7 @@ class StrainLimit(_JacobiLimit):
         return (f"StrainLimit([{self.sigma_min:g}, {self.sigma_max:g}], tolerance={tol}, "
                 f"iterations={self.iterations}, relaxation={self.relaxation:g}, "
                 f"gauss_seidel={self.gauss_seidel}, tethers={self.tethers}, "
-                f"over_relaxation={self.over_relaxation:g})")
+                f"over_relaxation={self.over_relaxation:g}, check_every={self.check_every})")
 
 
 class AreaLimit(_JacobiLimit):
@@ -712,14 +746,16 @@ class AreaLimit(_JacobiLimit):
             ``None``: exactly ``iterations``, no check.
         iterations: the most Jacobi iterations per application (default 200).
         relaxation: the Jacobi blend's ``alpha`` >= 0 (default 0).
+        check_every: Jacobi iterations between two checks of the tolerance (default 1).
     """
 
     name = "area-limit"
 
     def __init__(self, model, a_min: float = 0.0, a_max: float = math.inf, *,
-                 tolerance: float | None = 1e-3, iterations: int = 200, relaxation: float = 0.0):
+                 tolerance: float | None = 1e-3, iterations: int = 200, relaxation: float = 0.0,
+                 check_every: int = 1):
         self.a_min, self.a_max = _check_bounds("AreaLimit", a_min, a_max, "a_min", "a_max")
-        super().__init__(model, iterations, relaxation, tolerance)
+        super().__init__(model, iterations, relaxation, tolerance, check_every)
         areas = model.mesh.triangle_areas()
         self._rest_area = wp.array(areas.astype(np.float32), dtype=float, device=self.device)
 
@@ -747,4 +783,5 @@ class AreaLimit(_JacobiLimit):
     def __repr__(self):
         tol = "None" if self.tolerance is None else f"{self.tolerance:g}"
         return (f"AreaLimit([{self.a_min:g}, {self.a_max:g}], tolerance={tol}, "
-                f"iterations={self.iterations}, relaxation={self.relaxation:g})")
+                f"iterations={self.iterations}, relaxation={self.relaxation:g}, "
+                f"check_every={self.check_every})")
