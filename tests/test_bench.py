@@ -219,3 +219,19 @@ def test_render_bench_reports_time_and_page_size(capsys):
     assert row["obstacle_triangles"] == 192 + 2            # the torus and the floor
     assert row["s_per_frame_no_shadows"] > 0 and row["s_per_frame_shadows"] > 0
     assert 0 < row["page_bytes_per_frame"] and row["page_fixed_bytes"] < row["page_bytes"]
+
+
+def test_limits_bench_on_built_in_scenes(capsys):
+    """`bench limits --scenes`: a row per solver, each within the 1 % limit plus its tolerance
+    (the frames where the default hanging scene under PD needs the most sweeps are 7-8: 9 frames
+    reach them)."""
+    from warp_cloth.bench import limits
+
+    assert limits.main(["--scenes", "hanging", "--frames", "9"]) == 0
+    rows = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("| hanging |")]
+    assert [r.split("|")[2].strip() for r in rows] == ["explicit", "implicit", "pbd", "pd"]
+    for r in rows:
+        cells = [c.strip() for c in r.split("|")[1:-1]]
+        assert float(cells[2]) <= 1.1 + 1e-6 and cells[3] == "0", r
+    with pytest.raises(SystemExit):
+        limits.main(["--scenes", "nope"])
