@@ -222,3 +222,20 @@ def test_cli_bad_spec_is_a_one_line_usage_error(tmp_path, capsys):
     bad = write_spec(tmp_path, {"scene": "hanging", "solvers": ["warp-drive"]})
     assert main(["sweep", bad, "--dry-run"]) == 2
     assert "unknown solver" in capsys.readouterr().err
+
+
+def test_the_sweep_driver_does_not_load_warp(tmp_path):
+    """``import warp_cloth`` and a sweep's driver (spec checks, expansion, the results table)
+    do not import Warp (0.5 s at start-up, every CLI call); its workers load it."""
+    import subprocess
+    import sys
+
+    spec = tmp_path / "s.json"
+    spec.write_text(json.dumps({"scene": "hanging", "solvers": ["explicit", "pd"], "frames": 3,
+                                "out": str(tmp_path / "out"), "params": {"stiffness": [1, 2]}}))
+    probe = ("import sys; import warp_cloth; from warp_cloth.cli import main; "
+             f"rc = main(['sweep', {str(spec)!r}, '--dry-run']); "
+             "print('WARP' if 'warp' in sys.modules else 'NOWARP', rc)")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out[-2:] == ["NOWARP", "0"] and len(out) > 2  # the 4 runs listed, then the probe

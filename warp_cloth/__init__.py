@@ -12,16 +12,15 @@ Quick start::
 """
 
 from .errors import OutputError, SimulationDiverged
-from .mesh import TriMesh
-from .model import ClothModel, PinPath, State
-from .scene import RunStats, Scene
-from .solvers import make_solver
 
 __version__ = "0.1.0"
 
 #: names importable from ``warp_cloth`` whose modules load on first use (PEP 562), so that
-#: ``import warp_cloth`` stays light: limits, wind, obstacles and contact, USD output
+#: ``import warp_cloth`` stays light: it does not even import Warp (0.5 s) until a name that
+#: needs it is used, so the CLI starts fast and a sweep's driver never loads it
 _LAZY = {
+    "TriMesh": "mesh", "ClothModel": "model", "PinPath": "model", "State": "model",
+    "RunStats": "scene", "Scene": "scene", "make_solver": "solvers",
     "StrainLimit": "limits", "AreaLimit": "limits",
     "Wind": "forces.wind",
     "CollisionStage": "collision", "ObstacleContact": "collision", "Plane": "collision",

@@ -25,7 +25,14 @@ import sys
 import threading
 import warnings
 
-from .util import init_warp
+
+def init_warp(*args, **kwargs):
+    """`warp_cloth.util.init_warp`, imported on first use (Warp loads only for commands that
+    need it: ``sweep``'s driver and ``--help`` never do)."""
+    from .util import init_warp as _init
+
+    return _init(*args, **kwargs)
+
 
 SCENE_NAMES = ["hanging", "flag", "drape", "table", "spin", "mesh", "thin", "fold", "twist",
                "stack"]
@@ -529,8 +536,7 @@ def main(argv=None) -> int:
         return cmd_bench(args, parser)
     if args.command == "check":
         return cmd_check(args, parser)
-    if args.command == "sweep":
-        init_warp()
+    if args.command == "sweep":  # the driver never loads Warp: its workers do (`sweep.warm`)
         from .sweep import cmd_sweep
 
         return cmd_sweep(args)

@@ -13,74 +13,18 @@ import math
 import os
 import sys
 import time as _time
-from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import warp as wp
 
 from .diagnostics import Meter
 from .errors import SimulationDiverged
+from .runstats import RunStats
 
 __all__ = ["Scene", "RunStats"]
 
 #: a frame needing more automatic substeps than this is refused (a user may still ask for more)
 MAX_SUBSTEPS = 100_000
-
-
-@dataclass
-class RunStats:
-    """Summary of a run. Times in seconds; lengths in metres; energies in joules."""
-
-    method: str
-    frames: int
-    fps: float
-    substeps: int
-    dt: float
-    wall_s: float  # stepping + checks of the timed frames: excludes compile, graph recording, USD I/O
-    first_frame_s: float  # first stepped frame, includes compiling the kernels it uses
-    total_s: float
-    ms_per_frame: float
-    ms_per_substep: float
-    max_strain: float  # largest mesh-edge stretch l/L - 1 over all frames (compression not counted)
-    final_max_strain: float
-    min_height: float  # along the model's up axis (mesh.up_axis: y or z), over all frames
-    max_height: float
-    energy_initial: float
-    energy_final: float
-    captured: bool
-    timed_frames: int = 0  # frames in wall_s (not the first, nor the one that recorded the graph)
-    #: set-up inside the run, compiles included: the first measurement (which compiles the
-    #: diagnostics), the first frame and the frame that recorded the graph (not USD output)
-    setup_s: float = 0.0
-    out: str | None = None
-    # with ``check_intersections``: frames whose cloth passes through itself, and the most
-    # crossing (edge, triangle) pairs in one frame (None: not checked)
-    crossing_frames: int | None = None
-    max_crossings: int | None = None
-    #: frames in which a step stopped short of a tolerance (an unconverged solve, a limit out of
-    #: sweeps: `Solver.frame_end`), each reported on stderr with the frame unless quiet
-    short_frames: int = 0
-    extra: dict = field(default_factory=dict)
-
-    def as_dict(self) -> dict:
-        return asdict(self)
-
-    def summary(self) -> str:
-        return (
-            f"{self.method}: {self.frames} frames x {self.substeps} substeps (dt {self.dt:.3g} s), "
-            f"{self.ms_per_frame:.3f} ms/frame, {self.ms_per_substep:.4f} ms/substep "
-            f"(set-up incl. compile {self.setup_s:.2f} s, of which first frame "
-            f"{self.first_frame_s:.2f} s); max strain "
-            f"{100 * self.max_strain:.3f} %, final {100 * self.final_max_strain:.3f} %; height "
-            f"[{self.min_height:.3f}, {self.max_height:.3f}] m; energy {self.energy_initial:.4g} -> "
-            f"{self.energy_final:.4g} J"
-            + ("" if self.crossing_frames is None else
-               f"; self-intersection: {self.crossing_frames} of {self.frames} frames "
-               f"(at most {self.max_crossings} crossing pairs)")
-            + (f"; {self.short_frames} frames with a step short of its tolerance"
-               if self.short_frames else "")
-            + (f"; wrote {self.out}" if self.out else "")
-        )
 
 
 def _clock(seconds: float) -> str:

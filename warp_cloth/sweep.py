@@ -103,11 +103,11 @@ def check_spec(spec, where: str = "spec") -> dict:
         solvers = ["explicit"]
     if not (isinstance(solvers, list) and solvers and all(isinstance(s, str) for s in solvers)):
         raise SweepError(f"{where}: 'solvers' must be a list of solver names, got {solvers!r}")
-    from .solvers import available
+    from .registry import SOLVERS  # names only: the driver does not load Warp
 
-    bad = [s for s in solvers if s not in available()]
+    bad = [s for s in solvers if s not in SOLVERS]
     if bad:
-        raise SweepError(f"{where}: unknown solver(s) {bad}; available: {available()}")
+        raise SweepError(f"{where}: unknown solver(s) {bad}; available: {list(SOLVERS)}")
     spec["solvers"] = solvers
     for key, default in (("frames", 30), ("fps", 60.0)):
         v = spec.get(key, default)
@@ -190,7 +190,7 @@ def warm(scene: str, solvers) -> None:
 
 
 def _stat_fields() -> list[str]:
-    from .scene import RunStats
+    from .runstats import RunStats
 
     return [f.name for f in fields(RunStats)]
 

@@ -20,12 +20,7 @@ import inspect
 
 from .base import Solver, check_dt
 
-_REGISTRY = {
-    "explicit": ("warp_cloth.solvers.explicit", "SymplecticEuler"),
-    "implicit": ("warp_cloth.solvers.implicit", "ImplicitEuler"),
-    "pbd": ("warp_cloth.solvers.pbd", "PositionBased"),
-    "pd": ("warp_cloth.solvers.projective", "ProjectiveDynamics"),
-}
+from ..registry import SOLVERS as _REGISTRY
 
 
 def available() -> list[str]:
