@@ -430,3 +430,34 @@ def test_small_steps_tighten_the_newton_tolerance(monkeypatch):
     monkeypatch.setattr(ImplicitEuler, "step_tolerances",
                         lambda self, dt: (self.tolerance, self.step_tolerance))
     assert run_cell("implicit", 10.0, 1 / 2000, 1.0, 6, 0.25, ref_strain=0.185)["status"] == "E"
+
+
+def test_line_search_never_takes_a_rising_step_when_asked():
+    """`ls_select_kernel` with ``reject``: when every candidate raises F beyond the noise it
+    moves nothing (0); without (the capturable mode) it takes the lowest; an Armijo step is
+    taken either way."""
+    f0, slope, scale = 10.0, -1.0, 10.0
+    steps = wp.vec4(*imp.LS_STEPS)
+    for energies, reject, want in (([11.0, 10.5, 10.2, 10.1], 1, 0.0),
+                                   ([11.0, 10.5, 10.2, 10.1], 0, imp.LS_STEPS[3]),
+                                   ([11.0, 9.0, 10.2, 10.1], 1, imp.LS_STEPS[1])):
+        e = wp.array([f0, *energies, slope, scale], dtype=wp.float64)
+        chosen = wp.zeros(1, dtype=float)
+        record = wp.zeros(1, dtype=float)
+        wp.launch(imp.ls_select_kernel, 1, [e, steps, imp.LS_ARMIJO, chosen, 0, record, reject])
+        assert chosen.numpy()[0] == pytest.approx(want) and record.numpy()[0] == chosen.numpy()[0]
+
+
+def test_very_stiff_large_step_gains_no_energy():
+    """The stability map's cell k = 1e9 N/m, dt = 1/30 s (6 x 6 hanging sheet): Newton reaches
+    its cap at the float32 floor, and without the energy guard (and a line search that may take
+    a rising step) the sheet gained 5 % of M g (1 m) by its second frame; with it, the total
+    energy never rises."""
+    from warp_cloth.bench.stability import simulate
+
+    for guard, holds in ((True, True), (False, False)):
+        e, s, div, _, scale = simulate("implicit", 1e9, 1 / 30, 1, 6, 0.25,
+                                       solver_options={"energy_guard": guard})
+        assert div is None and np.all(np.isfinite(e))
+        rise = float(np.max(np.diff(e)))
+        assert (rise <= 1e-4 * scale) == holds, (guard, rise)

@@ -91,8 +91,21 @@ def checker_masses(res: int, density: float, ratio: float, size: float = 1.0):
     return m * w * (m.sum() / (m * w).sum())
 
 
+#: implicit Euler with another inner solver, as a method of its own (``--methods``)
+IMPLICIT_VARIANTS = {"implicit-jacobi": "jacobi", "implicit-chebyshev": "chebyshev"}
+
+
+def split_method(method, solver_options=None):
+    """``(solver, options)`` of a map method: ``implicit-jacobi`` is implicit Euler with the
+    Jacobi inner solve (and ``implicit-chebyshev`` with Chebyshev); others are solver names."""
+    if method in IMPLICIT_VARIANTS:
+        return "implicit", {**(solver_options or {}), "linear": IMPLICIT_VARIANTS[method]}
+    return method, solver_options
+
+
 def simulate(method, k, dt, ratio, res, duration, density=0.15, solver_options=None):
     """Run one cell; per-frame energies and strains, the divergence frame (or None), seconds."""
+    method, solver_options = split_method(method, solver_options)
     from ..diagnostics import Meter
     from ..errors import SimulationDiverged
     from ..scenes import build_scene
@@ -160,7 +173,8 @@ def parallel_cells(methods, ratios, ks, dts, res, duration, refs, energy_tol, st
     grid = [(m, k, dt, r) for m in methods for r in ratios for k in ks for dt in dts]
     out = map_cells(run_cell, [(m, k, dt, r, res, duration, refs[(k, r)], 0.15, energy_tol,
                                 stretch_factor) for m, k, dt, r in grid],
-                    workers=workers, address=address, warm_with=("hanging", methods),
+                    workers=workers, address=address,
+                    warm_with=("hanging", sorted({split_method(m)[0] for m in methods})),
                     on_crash=_crashed_cell)
     return dict(zip(grid, out))
 
@@ -202,7 +216,9 @@ def plot(path, cells, methods, ks, dts, ratios):
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="warp-cloth bench stability", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--methods", default=None, help="comma list (default: all available)")
+    p.add_argument("--methods", default=None,
+                   help="comma list (default: all available); implicit-jacobi and "
+                        "implicit-chebyshev: implicit Euler with that inner solve")
     p.add_argument("--res", type=int, default=None, help="cells per side (default 8, quick 6)")
     p.add_argument("--duration", type=float, default=None,
                    help="simulated seconds (default 1, quick 0.25)")
@@ -229,6 +245,8 @@ def main(argv=None) -> int:
 
     avail = available()
     methods = avail if args.methods is None else [m.strip() for m in args.methods.split(",")]
+    if "implicit" in avail:
+        avail = avail + list(IMPLICIT_VARIANTS)
     bad = [m for m in methods if m not in avail]
     if bad:
         p.error(f"methods {bad} not available; available: {avail}")
@@ -289,7 +307,8 @@ def main(argv=None) -> int:
     write_csv(os.path.join(args.out_dir, "stability.csv"), rows)
     cmd = (f"warp-cloth bench stability --res {res} --duration {duration:g} --ratios "
            f"{','.join(f'{r:g}' for r in ratios)} --ks {','.join(f'{k:g}' for k in ks)} --dts "
-           f"{','.join(fmt_dt(d) for d in dts)}" + (" --quick" if args.quick else ""))
+           f"{','.join(fmt_dt(d) for d in dts)}" + (" --quick" if args.quick else "")
+           + ("" if args.methods is None else f" --methods {','.join(methods)}"))
     md = [f"# Stability map: hanging cloth, {res}x{res} cells, {duration:g} s per cell\n",
           f"Command: `{cmd}` ({time.perf_counter() - t0:.0f} s on this machine)\n",
           f"S = stable; O<f> = over-stretched: strain above {args.stretch_factor:g} x the "

@@ -60,6 +60,23 @@ device (`ls_select_kernel`: four step lengths evaluated in one pass, the largest
 Armijo's condition taken), so every iteration lowers the incremental potential (the notes'
 2.6; T4) without a host read: the step stays capturable.
 
+**Energy guard** (``energy_guard=True``, with a ``tolerance``: the mode that reads the host
+anyway). Implicit Euler dissipates, so a step that ends with more energy than it started with
+(kinetic, springs, bending, the external forces' potential; not counting contact) is a solver
+defect. Measured on the stability map's 6 x 6 sheet at k = 1e9 N/m, dt = 1/30 s: Newton stops at
+its cap at the float32 floor, and the line search, when all four steps raised F, took the least
+bad one (F 1.4 -> 25 J in one iteration); with Jacobi and Chebyshev inner solves the sheet
+gained 20 and 165 J. Now (1) a line search whose four steps all raise F tries steps 16 times
+shorter and else moves nothing (``stats["ls_rejected"]``); (2) a step that reaches its Newton
+cap, or stalls with a Jacobi-type inner solver, while its energy rose by more than 1e-5 of
+``M |g|`` x 1 m goes on for up to ``2 newton_iterations`` more iterations (with CG as the inner
+solver), until the rise is gone (``stats["energy_guard_steps"]``); a step that still gains is
+counted (``energy_gain_steps``) and reported by `frame_end`. Not with scripted pins or moving
+obstacles, which do work on the cloth. With CG that cell's energy now never rises (and the
+drape's largest one-frame rise fell from 5e-4 to 3e-5 J, the table's from 7e-4 J to none); with
+Jacobi and Chebyshev at dt = 1/30 s it still rises: by 0.05 and 0.16 J at k = 1e8 N/m, by 2.2
+and 4.1 J at 1e9 (before: 20 and 165 J). Use CG for such stiffness.
+
 Limitations: Newton with the exact Hessian may diverge under compression;
 float32 positions put a floor of roughly ``1e-7 max|x| k dt^2/m`` metres under the residual
 (a cloth far from the origin has a higher floor).
@@ -303,6 +320,13 @@ def objective_kernel(
         wp.atomic_add(out, 0, wp.float64(0.5 * scale * mass[i] * wp.dot(d, d) - wp.dot(f_ext[i], x[i])))
 
 
+#: the energy guard adds up to this many times ``newton_iterations`` to a step that reached its
+#: cap above its tolerance while gaining energy
+ENERGY_GUARD_ROUNDS = 2
+
+#: with the energy guard, a line search whose four steps all raise F tries these times shorter
+LS_RETRY = 1.0 / 16.0
+
 #: step lengths the device line search tries, largest first (one energy pass evaluates all)
 LS_STEPS = (1.0, 0.5, 0.25, 0.125)
 LS_N = wp.constant(len(LS_STEPS))
@@ -367,10 +391,15 @@ def ls_spring_kernel(x: wp.array(dtype=wp.vec3), x_try: wp.array2d(dtype=wp.vec3
 
 @wp.kernel
 def ls_select_kernel(energy: wp.array(dtype=wp.float64), steps: wp.vec4, armijo: float,
-                     chosen: wp.array(dtype=float), slot: int, record: wp.array(dtype=float)):
+                     chosen: wp.array(dtype=float), slot: int, record: wp.array(dtype=float),
+                     reject: int):
     """The largest step whose F meets Armijo's condition ``F <= F0 + c a grad F . dx`` (up to
-    the float32 noise of F); if none does, the step of the lowest F (the smallest one when all rise: float32 noise near a
-    minimum). Written to ``chosen[0]`` (read by the update) and ``record[slot]``."""
+    the float32 noise of F); if none does, the step of the lowest F: with ``reject``, only if
+    that one does not raise F beyond the noise, else 0 (no move: the step's caller, which reads
+    it, tries shorter steps or another inner solver); without (the capturable fixed-iteration
+    mode, which reads nothing), the smallest even when all rise. At k = 1e9 N/m, dt = 1/30 s
+    such a step took F from 1.4 to 25 J. Written to ``chosen[0]`` (read by the update) and
+    ``record[slot]``."""
     f0 = energy[0]
     slope = wp.min(energy[LS_N + 1], wp.float64(0.0))
     # F is summed in float64 from float32 terms: differences below ~1e-6 of the terms' size
@@ -380,13 +409,18 @@ def ls_select_kernel(energy: wp.array(dtype=wp.float64), steps: wp.vec4, armijo:
     for j in range(LS_N):
         if best < 0 and energy[j + 1] <= f0 + wp.float64(armijo * steps[j]) * slope + noise:
             best = j
+    a = float(0.0)
     if best < 0:
         best = LS_N - 1
         for j in range(LS_N):
             if energy[j + 1] < energy[best + 1]:
                 best = j
-    chosen[0] = steps[best]
-    record[slot] = steps[best]
+        if reject == 0 or energy[best + 1] <= f0 + noise:
+            a = steps[best]
+    else:
+        a = steps[best]
+    chosen[0] = a
+    record[slot] = a
 
 
 @wp.kernel
@@ -396,6 +430,25 @@ def spring_energy64_kernel(x: wp.array(dtype=wp.vec3), springs: wp.array2d(dtype
     e = wp.tid()
     s = wp.float64(wp.length(x[springs[e, 0]] - x[springs[e, 1]])) - wp.float64(rest[e])
     wp.atomic_add(out, 0, wp.float64(0.5) * wp.float64(stiffness[e]) * s * s)
+
+
+@wp.kernel
+def step_energy_kernel(x: wp.array(dtype=wp.vec3), x_prev: wp.array(dtype=wp.vec3),
+                       v: wp.array(dtype=wp.vec3), disp: wp.array(dtype=wp.vec3),
+                       mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float),
+                       f_ext: wp.array(dtype=wp.vec3), inv_dt: float, decay: float,
+                       out: wp.array(dtype=wp.float64)):
+    """Kinetic energy and the external forces' potential ``-f_ext . x`` of the free vertices,
+    at the start of the step (``out[0]``: ``v``, ``x_prev``) and at the current iterate
+    (``out[1]``: the velocity `end_step_kernel` would give, ``x``)."""
+    i = wp.tid()
+    if inv_mass[i] > 0.0:
+        v0 = v[i]
+        v1 = (v0 + disp[i] * inv_dt) * decay
+        m = 0.5 * mass[i]
+        f = f_ext[i]
+        wp.atomic_add(out, 0, wp.float64(m * wp.dot(v0, v0) - wp.dot(f, x_prev[i])))
+        wp.atomic_add(out, 1, wp.float64(m * wp.dot(v1, v1) - wp.dot(f, x[i])))
 
 
 @wp.kernel
@@ -515,6 +568,9 @@ class ImplicitEuler(Solver):
         contact_stiffness: ``kappa`` of the contact term inside the Newton solve, its
             stiffness over the inertia block ``m/dt^2`` (default 1e3;
             `warp_cloth.solvers.contact_coupling`).
+        energy_guard: with a ``tolerance``, steps that would gain energy iterate further and
+            a line search never takes a step that raises F (default True; see *Energy guard*
+            above). False restores the former behaviour.
         corrections: limits run after each step.
         collision: a `CollisionStage`: its contacts enter every Newton iteration (detected once
             per step from the predicted positions), and its ``resolve`` ends the step.
@@ -549,7 +605,7 @@ class ImplicitEuler(Solver):
                  check_every: int | None = None, initial_guess: str = "inertial",
                  line_search: bool = True, trace: bool = False, measure_residual: bool = False,
                  contact_stiffness: float = DEFAULT_CONTACT_STIFFNESS,
-                 corrections=(), collision=None):
+                 energy_guard: bool = True, corrections=(), collision=None):
         super().__init__(model, corrections=corrections, collision=collision)
         if int(newton_iterations) != newton_iterations or newton_iterations < 1:
             raise ValueError(f"implicit: newton_iterations must be a positive integer, got "
@@ -577,6 +633,13 @@ class ImplicitEuler(Solver):
             opts.update(rho=0.9 if rho is None else rho, delay=delay)
         self.linear_name = linear
         self.linear = make_linear_solver(linear, **opts)  # validates its options
+        # the energy guard's inner solver (`step`): CG, whatever ``linear`` is (a Jacobi-type
+        # solve makes almost no progress on very stiff springs: at k = 1e9 N/m, dt = 1/30 s
+        # Jacobi and Chebyshev steps gained 20 and 165 J on a 0.15 kg sheet)
+        cg_its, cg_tol = LINEAR_DEFAULTS["cg"]
+        self._guard_linear = (make_linear_solver("cg", iterations=cg_its, tolerance=cg_tol)
+                              if energy_guard and tolerance is not None and linear != "cg"
+                              else None)
         self.newton_iterations = int(newton_iterations)
         self.tolerance = tolerance
         if step_tolerance is None:
@@ -618,8 +681,14 @@ class ImplicitEuler(Solver):
         self.x_hat = wp.zeros(n, dtype=wp.vec3, device=d)
         self.disp = wp.zeros(n, dtype=wp.vec3, device=d)
         self._iterate = None  # the positions array whose x - x_hat is tracked exactly in disp
-        self.residuals = wp.zeros(self.newton_iterations + 1, dtype=wp.float32, device=d)
-        self.dx_max = wp.zeros(self.newton_iterations + 1, dtype=wp.float32, device=d)
+        self.energy_guard = bool(energy_guard) and tolerance is not None
+        #: most Newton iterations of a step, the energy guard's extensions included
+        self._k_total = self.newton_iterations * (1 + ENERGY_GUARD_ROUNDS * self.energy_guard)
+        self._energy = wp.zeros(2, dtype=wp.float64, device=d)
+        self._energy32 = wp.zeros(1, dtype=wp.float32, device=d)
+        self._guard = {"extended": 0, "gained": 0, "new": 0, "last": 0.0, "rejected": 0}
+        self.residuals = wp.zeros(self._k_total + 1, dtype=wp.float32, device=d)
+        self.dx_max = wp.zeros(self._k_total + 1, dtype=wp.float32, device=d)
         if self.trace:
             self._obj = wp.zeros(1, dtype=wp.float64, device=d)
             self._obj32 = wp.zeros(1, dtype=wp.float32, device=d)
@@ -630,7 +699,7 @@ class ImplicitEuler(Solver):
             self._ls_energy32 = wp.zeros(len(LS_STEPS) + 1, dtype=wp.float32, device=d)
             self._ls_views = [self._ls_energy32[j:j + 1] for j in range(len(LS_STEPS) + 1)]
             self._ls_step = wp.ones(1, dtype=float, device=d)
-            self._ls_taken = wp.zeros(self.newton_iterations, dtype=float, device=d)
+            self._ls_taken = wp.zeros(self._k_total, dtype=float, device=d)
         # Chebyshev with rho=None measures rho on the first step (host work): the scene runner
         # captures from its second frame on, after that.
         self.capturable = (self.capturable and tolerance is None and self.linear.capturable
@@ -782,7 +851,16 @@ class ImplicitEuler(Solver):
         x = state.x
         measured = False  # residual of the final iterate known?
         residual = float("nan")
-        for k in range(K):
+        cap = K
+        guard = check and self.energy_guard and self._guard_applies()
+        guard_ls = check and self.energy_guard and self.line_search
+        extended = use_cg = False
+        for k in range(self._k_total):
+            if k >= cap:  # Newton reached its cap above its tolerance: the energy guard
+                if not guard or self._energy_gain(x, state.v, dt) <= self._guard_eps:
+                    break
+                cap += K
+                extended = True
             if self.linear_name in ("jacobi", "chebyshev") and self._rho_dt != dt:
                 # measured without the contact term: it can only lower the Jacobi iteration's
                 # spectral radius (contact_coupling), so the bound holds with any contact set
@@ -799,13 +877,26 @@ class ImplicitEuler(Solver):
                 if check and r < tol:
                     residual, measured = r, True
                     break
-            info = self.linear.solve(self.A, self.b, self.dx)
-            inner += self.linear.iterations if fixed else int(info["iterations"])
+            if (extended or use_cg) and self._guard_linear is not None:
+                info = self._guard_linear.solve(self.A, self.b, self.dx)
+                inner += int(info["iterations"])
+            else:
+                info = self.linear.solve(self.A, self.b, self.dx)
+                inner += self.linear.iterations if fixed else int(info["iterations"])
             if not fixed and not info.get("converged", True):
                 inner_short += 1
             step = self._one
+            switched = False
             if self.line_search:
-                self._line_search(x, k)
+                strict = guard_ls
+                self._line_search(x, k, 1.0, strict)
+                if strict and float(self._ls_taken.numpy()[k]) == 0.0:
+                    # every step raised F: shorter ones, then (Jacobi / Chebyshev) CG
+                    self._line_search(x, k, LS_RETRY, 1)
+                    if float(self._ls_taken.numpy()[k]) == 0.0:
+                        self._guard["rejected"] += 1
+                        if self._guard_linear is not None and not use_cg:
+                            use_cg = switched = True
                 step = self._ls_step
             wp.launch(newton_update_kernel, n,
                       [x, self.dx, step, self.A.free, self.dx_max, k, self.disp],
@@ -816,9 +907,22 @@ class ImplicitEuler(Solver):
                 if trace is not None:
                     trace[-1]["dx"] = moved
                     trace[-1]["step"] = float(step.numpy()[0])
-                if check and moved < step_tol:
+                if check and moved < step_tol and not switched:
+                    if (guard and self._guard_linear is not None and not use_cg
+                            and self._energy_gain(x, state.v, dt) > self._guard_eps):
+                        # a Jacobi-type inner solve stalled while the step gains energy: CG
+                        use_cg = extended = True
+                        cap = min(max(cap, k + 1 + K), self._k_total)
+                        continue
                     stalled = True
                     break  # stagnated (float32 floor): more iterations cannot lower the residual
+        if extended:
+            self._guard["extended"] += 1
+            gain = 0.0 if measured else self._energy_gain(x, state.v, dt)
+            if gain > self._guard_eps:
+                self._guard["gained"] += 1
+                self._guard["new"] += 1
+                self._guard["last"] = gain
         lazy = None
         if not measured:
             if check or trace is not None:
@@ -847,6 +951,9 @@ class ImplicitEuler(Solver):
             self._short["inner"] += inner_short
             self._short["inner_new"] += inner_short
         self._stats["unconverged_steps"] = self._short["steps"]
+        self._stats["energy_guard_steps"] = self._guard["extended"]
+        self._stats["energy_gain_steps"] = self._guard["gained"]
+        self._stats["ls_rejected"] = self._guard["rejected"]
         self._stats["inner_short_total"] = self._short["inner"]
         if self.linear_name == "chebyshev":
             self._stats["rho"] = self.linear.rho
@@ -855,6 +962,45 @@ class ImplicitEuler(Solver):
         if trace is not None:
             self._stats["trace"] = trace
         self._lazy = lazy
+
+    def _guard_applies(self) -> bool:
+        """The energy guard compares the step's end with its start, which only means something
+        when nothing outside the cloth does work on it: no scripted pins, no moving obstacle."""
+        m = self.model
+        if getattr(m, "pin_path", None) is not None:
+            return False
+        obstacles = getattr(self.collision, "obstacles", None) or ()
+        return not any(getattr(o, "moving", False) for o in obstacles)
+
+    @property
+    def _guard_eps(self) -> float:
+        """Energy rise the guard tolerates in a step: 1e-5 of ``M |g|`` times 1 m (float32
+        positions round a stiff spring's energy at about this level), at least 1e-9 J."""
+        if not hasattr(self, "_eps_cache"):
+            mg = float(np.sum(self.model.masses)) * float(np.linalg.norm(self.model.gravity))
+            self._eps_cache = max(1.0e-5 * mg, 1.0e-9)
+        return self._eps_cache
+
+    def _energy_gain(self, x, v, dt: float) -> float:
+        """Total energy (kinetic, springs, implicit force terms, external forces' potential;
+        contact penalties left out: they only rise where contact pushes) at the current
+        iterate minus at the start of the step: one host read."""
+        m, d, e = self.model, self.device, self._energy
+        e.zero_()
+        wp.launch(step_energy_kernel, m.num_vertices,
+                  [x, self.x_prev, v, self.disp, m.mass, m.inv_mass, self.f_ext,
+                   1.0 / dt, math.exp(-m.damping * dt), e], device=d)
+        for j, xc in enumerate((self.x_prev, x)):
+            if m.num_springs:
+                wp.launch(spring_energy64_kernel, m.num_springs,
+                          [xc, m.spring_indices, m.spring_rest_length, m.spring_k, e[j:j + 1]],
+                          device=d)
+            for t in self.implicit_terms:
+                self._energy32.zero_()
+                t.energy(xc, self._energy32)
+                wp.launch(to_float64_kernel, 1, [self._energy32, e[j:j + 1]], device=d)
+        e0, e1 = (float(v) for v in e.numpy())
+        return e1 - e0
 
     def step_tolerances(self, dt: float) -> tuple:
         """``(tolerance, step_tolerance)`` of a step of ``dt`` seconds: ``tolerance`` capped at
@@ -881,6 +1027,12 @@ class ImplicitEuler(Solver):
             out.append(f"implicit: {sh['inner_new']} {self.linear_name} inner solve(s) stopped at "
                        f"{self.linear.iterations} iterations above their tolerance")
         sh["new"] = sh["inner_new"] = 0
+        g = self._guard
+        if g["new"]:
+            out.append(f"implicit: {g['new']} step(s) still gained energy after "
+                       f"{self._k_total} Newton iterations (the energy guard's cap; last "
+                       f"{g['last']:.3g} J)")
+            g["new"] = 0
         return out
 
     def newton_system(self, state, dt: float):
@@ -905,12 +1057,12 @@ class ImplicitEuler(Solver):
         self._assemble(state.x, 0)
         return self.A, self.b
 
-    def _line_search(self, x, k: int) -> None:
+    def _line_search(self, x, k: int, scale: float = 1.0, reject: int = 0) -> None:
         """Device line search along ``dx`` (`ls_vertex_kernel`, `ls_spring_kernel`, the force
         terms' and the contact term's energies at ``x`` and at the candidates,
         `ls_select_kernel`): the chosen step goes to ``_ls_step`` (and ``_ls_taken[k]``)."""
         m, d, n = self.model, self.device, self.model.num_vertices
-        steps = wp.vec4(*LS_STEPS)
+        steps = wp.vec4(*(scale * a for a in LS_STEPS))
         E = self._ls_energy
         E.zero_()
         wp.launch(ls_vertex_kernel, n,
@@ -930,7 +1082,8 @@ class ImplicitEuler(Solver):
         if self._coupling is not None and self.collision is not None:
             for j, xc in enumerate(configs):
                 self._coupling.energy(xc, E, self._dt, j)
-        wp.launch(ls_select_kernel, 1, [E, steps, LS_ARMIJO, self._ls_step, k, self._ls_taken],
+        wp.launch(ls_select_kernel, 1, [E, steps, LS_ARMIJO, self._ls_step, k, self._ls_taken,
+                                        int(reject)],
                   device=d)
 
     def describe(self) -> str:
