@@ -378,6 +378,7 @@ def test_line_search_and_stats():
     ({"initial_guess": "zero"}, "initial_guess"),
     ({"linear_iterations": 0}, "iterations"),
     ({"step_tolerance": -1.0}, "step_tolerance"),
+    ({"energy_guard": "no"}, "energy_guard"),
 ])
 def test_bad_options(opts, match):
     m = hanging_model(res=3, device="cpu")

@@ -631,6 +631,8 @@ class ImplicitEuler(Solver):
         if int(newton_iterations) != newton_iterations or newton_iterations < 1:
             raise ValueError(f"implicit: newton_iterations must be a positive integer, got "
                              f"{newton_iterations!r}")
+        if not isinstance(energy_guard, (bool, np.bool_)):
+            raise ValueError(f"implicit: energy_guard must be True or False, got {energy_guard!r}")
         if tolerance is not None and not (math.isfinite(tolerance) and tolerance > 0):
             raise ValueError(f"implicit: tolerance must be > 0 metres or None, got {tolerance!r}")
         if linear not in LINEAR_DEFAULTS:
