@@ -188,14 +188,21 @@ def test_selfcollision_bench_reports_both_variants(capsys):
 
     from warp_cloth.bench import selfcollision
 
-    assert selfcollision.main(["--solver", "pd", "--res", "8", "--warmup", "60", "--rounds", "1",
-                               "--json"]) == 0
+    assert selfcollision.main(["--solver", "explicit", "--res", "6", "--warmup", "60",
+                               "--rounds", "1", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
-    assert [(r["solver"], r["broadphase"]) for r in rows] == [("pd", "grid"), ("pd", "bvh")]
+    assert [(r["solver"], r["broadphase"], r["self_motion"]) for r in rows] == [
+        ("explicit", "grid", 0.0), ("explicit", "grid", 0.25), ("explicit", "bvh", 0.0),
+        ("explicit", "bvh", 0.25)]
     for r in rows:
         assert r["ms_step_with"] > 0 and r["ms_step_without"] > 0
-        assert r["contacts_per_step"] > 0  # it timed the folded, touching state
-    assert rows[0]["ms_step_without"] == rows[1]["ms_step_without"]  # one baseline per solver
+        assert r["contacts"] > 0  # it timed the folded, touching state
+    assert len({r["ms_step_without"] for r in rows}) == 1  # one baseline per solver
+    every, spans = rows[2], rows[3]
+    assert every["responses"] == every["substeps"]  # self_motion 0: after every step
+    assert 1 <= spans["responses"] < every["responses"]  # spans: the frame's end at least
+    with pytest.raises(SystemExit):
+        selfcollision.main(["--self-motion", "-1"])
 
 
 def test_ccd_bench_totals_line(capsys):

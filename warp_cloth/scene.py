@@ -119,6 +119,9 @@ class Scene:
                     f"to stay stable (more than {MAX_SUBSTEPS}); raise fps or give substeps")
         if int(substeps) != substeps or substeps < 1:
             raise ValueError(f"substeps must be a positive integer, got {substeps}")
+        stage = getattr(solver, "collision", None)
+        if stage is not None and hasattr(stage, "plan"):
+            stage.plan(int(substeps))  # self-collision spans end with the frames
         if not (strain_bound > 0):
             raise ValueError(f"strain_bound must be > 0, got {strain_bound}")
         self.model, self.solver = model, solver
@@ -180,6 +183,8 @@ class Scene:
             checker = SelfIntersectionChecker(model.mesh.triangles, model.mesh.edges,
                                               model.num_vertices, device=model.device)
         stage = getattr(solver, "collision", None)
+        if stage is not None and hasattr(stage, "restart_span"):
+            stage.restart_span()
         graph = None
         no_graph = False
         wall = 0.0

@@ -6,8 +6,10 @@ lies on the other (the expensive case: every vertex near another layer). Then on
 substeps is timed from that same state with the self-collision pass and with it taken out
 (``stage.self_collision = None``), alternating, ``--rounds`` times, the state restored before each
 frame (outside the timed region), once with each broad phase (``--broadphase``: the hash grid
-and the swept-box BVH of `warp_cloth.collision.broadphase`). Overhead = with / without - 1,
-beside the absolute times and the contacts found per step.
+and the swept-box BVH of `warp_cloth.collision.broadphase`) and each ``--self-motion`` (0: the
+response after every step; 0.25, the default: once a span of steps has moved a vertex a
+quarter of the thickness, and at the frame's end, `CollisionStage.plan`). Overhead = with /
+without - 1, beside the absolute times, the responses run in the frame and the contacts found.
 """
 
 from __future__ import annotations
@@ -38,10 +40,18 @@ def main(argv=None) -> int:
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--device", default=None)
     p.add_argument("--broadphase", nargs="+", default=["grid", "bvh"], choices=["grid", "bvh"])
+    p.add_argument("--self-motion", default="0,0.25",
+                   help="comma-separated CollisionStage self_motion values (default 0,0.25)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     if args.res < 2 or args.warmup < 0 or args.rounds < 1:
         p.error("--res >= 2, --warmup >= 0 and --rounds >= 1")
+    try:
+        motions = [float(v) for v in args.self_motion.split(",")]
+    except ValueError:
+        p.error(f"--self-motion: comma-separated numbers, got {args.self_motion!r}")
+    if not motions or any(not (v >= 0) for v in motions):
+        p.error("--self-motion values must be >= 0")
     quiet_warp()
     from ..contact_scenes import fold
     from ..scene import suggest_substeps
@@ -60,42 +70,56 @@ def main(argv=None) -> int:
         from ..collision.self_collision import SelfCollision
 
         sc = stage.self_collision
-        variants = {"without": None}
+        motion0 = stage.self_motion
+        variants = {"without": (None, 0.0)}
         for bp in args.broadphase:
-            variants[bp] = sc if sc.broad.method == bp else SelfCollision(
+            obj = sc if sc.broad.method == bp else SelfCollision(
                 scene.model, sc.thickness, sc.rounds, sc.iterations, broadphase=bp)
+            for mo in motions:
+                variants[(bp, mo)] = (obj, mo)
         times = {k: [] for k in variants}
-        contacts = {}
+        contacts, responses = {}, {}
         for r in range(args.rounds):
-            for variant, obj in variants.items():
+            for variant, (obj, mo) in variants.items():
                 stage.self_collision = obj
+                stage.self_motion = mo
+                stage.plan(substeps)
                 wp.copy(state.x, snap[0])
                 wp.copy(state.v, snap[1])
                 wp.copy(state.time, snap[2])
+                before = obj.stats["self_contacts_total"] if obj is not None else 0
+                runs = obj.stats["self_responses_total"] if obj is not None else 0
                 wp.synchronize_device(state.x.device)
                 t0 = time.perf_counter()
                 _frame(solver, state, substeps, dt)
                 times[variant].append(time.perf_counter() - t0)
                 if obj is not None and r == 0:
-                    contacts[variant] = obj.stats["self_contacts"]
+                    contacts[variant] = obj.stats["self_contacts_total"] - before
+                    responses[variant] = obj.stats["self_responses_total"] - runs
         stage.self_collision = sc
+        stage.self_motion = motion0
+        stage.plan(substeps)
         wo = 1e3 * statistics.median(times["without"]) / substeps
-        for bp in args.broadphase:
-            w = 1e3 * statistics.median(times[bp]) / substeps
-            rows.append(dict(solver=name, broadphase=bp, substeps=substeps, ms_step_with=w,
-                             ms_step_without=wo, overhead=w / wo - 1.0,
-                             contacts_per_step=contacts[bp],
+        for variant in variants:
+            if variant == "without":
+                continue
+            bp, mo = variant
+            w = 1e3 * statistics.median(times[variant]) / substeps
+            rows.append(dict(solver=name, broadphase=bp, self_motion=mo, substeps=substeps,
+                             ms_step_with=w, ms_step_without=wo, overhead=w / wo - 1.0,
+                             responses=responses[variant], contacts=contacts[variant],
                              vertices=scene.model.num_vertices))
     if args.json:
         print(json.dumps(rows, indent=1))
         return 0
     print(f"# self-collision cost: fold scene, {args.res}x{args.res} cells, after {args.warmup} "
           f"frames (lying folded), median of {args.rounds} rounds, launches not captured\n")
-    print("| solver | broad phase | substeps/frame | ms/step without | ms/step with | overhead | "
-          "contacts in the last step's rounds |")
-    print("|---|---|---|---|---|---|---|")
+    print("| solver | broad phase | self_motion | substeps/frame | ms/step without | "
+          "ms/step with | overhead | responses in the frame | contacts in the frame |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['solver']} | {r['broadphase']} | {r['substeps']} | {r['ms_step_without']:.2f} | "
-              f"{r['ms_step_with']:.2f} | {100 * r['overhead']:+.0f} % | {r['contacts_per_step']} |")
+        print(f"| {r['solver']} | {r['broadphase']} | {r['self_motion']:g} | {r['substeps']} | "
+              f"{r['ms_step_without']:.2f} | {r['ms_step_with']:.2f} | "
+              f"{100 * r['overhead']:+.0f} % | {r['responses']} | {r['contacts']} |")
     print(f"\n({time.perf_counter() - t_all:.0f} s)")
     return 0

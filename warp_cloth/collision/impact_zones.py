@@ -168,9 +168,10 @@ def zone_move_kernel(rec: ContactRecord, member: wp.array(dtype=int), label: wp.
                      zmass: wp.array(dtype=float), zc0: wp.array(dtype=wp.vec3),
                      zc1: wp.array(dtype=wp.vec3), zang: wp.array(dtype=wp.vec3),
                      zinert: wp.array(dtype=wp.mat33), zpinned: wp.array(dtype=int),
-                     inv_dt: float, counters: wp.array(dtype=int), slot: int):
+                     inv_dt: float, steps: wp.array(dtype=int), counters: wp.array(dtype=int),
+                     slot: int):
     """Each free zone member to its zone's rigid end position,
-    ``v = (x - x0) / dt``; the zones (roots) and moved vertices counted. Nothing when the
+    ``v = (x - x0) / (steps[0] dt)`` (the path's mean velocity); the zones (roots) and moved vertices counted. Nothing when the
     record is empty (the zones are already rigid: no new contact merged into them)."""
     i = wp.tid()
     if member[i] == 0 or rec.count[0] == 0:
@@ -195,7 +196,7 @@ def zone_move_kernel(rec: ContactRecord, member: wp.array(dtype=int), label: wp.
         rq = wp.quat_rotate(wp.quat_from_axis_angle(theta / ang, ang), q)
     xn = c1 + rq
     x[i] = xn
-    v[i] = (xn - x0[i]) * inv_dt
+    v[i] = (xn - x0[i]) * (inv_dt / float(steps[0]))
 
 
 class ImpactZones:
@@ -217,6 +218,7 @@ class ImpactZones:
         import numpy as np
 
         self._iota = wp.array(np.arange(n, dtype=np.int32), dtype=int, device=d)
+        self._one = wp.ones(1, dtype=int, device=d)
 
     def reset(self) -> None:
         """No zones (start of a step)."""
@@ -234,11 +236,15 @@ class ImpactZones:
         for _ in range(2):
             wp.launch(zone_jump_kernel, len(self.label), [self.label], device=d)
 
-    def move(self, rec: ContactRecord, x0, state, dt: float, counters, slot: int) -> None:
+    def move(self, rec: ContactRecord, x0, state, dt: float, counters, slot: int,
+             steps=None) -> None:
         """Every zone moved rigidly (or held at its start if pinned), unless ``rec`` (the
-        entries just merged) is empty; ``counters[slot]`` += zones, ``counters[slot + 1]`` +=
+        entries just merged) is empty; the path ``x0 -> state.x`` lasts ``steps[0]`` steps of
+        ``dt`` (a device array); ``counters[slot]`` += zones, ``counters[slot + 1]`` +=
         free vertices moved."""
         m, d, n = self.model, self.device, len(self.label)
+        if steps is None:
+            steps = self._one
         wp.launch(zone_clear_kernel, n, [rec, self.zmass, self.zc0, self.zc1, self.zang,
                                          self.zinert, self.zpinned, self.zsize], device=d)
         wp.launch(zone_pinned_kernel, n, [rec, self.member, self.label, m.inv_mass, self.zpinned,
@@ -250,5 +256,6 @@ class ImpactZones:
                                            self.zang, self.zinert], device=d)
         wp.launch(zone_move_kernel, n, [rec, self.member, self.label, x0, state.x, state.v,
                                         m.inv_mass, self.zmass, self.zc0, self.zc1, self.zang,
-                                        self.zinert, self.zpinned, 1.0 / dt, counters, slot],
+                                        self.zinert, self.zpinned, 1.0 / dt, steps, counters,
+                                        slot],
                   device=d)

@@ -43,7 +43,7 @@ from .obstacles import Obstacle
 from .record import make_record
 from ..util import positive_finite
 
-__all__ = ["CollisionStage", "DEFAULT_SOLVE_MARGIN"]
+__all__ = ["CollisionStage", "DEFAULT_SOLVE_MARGIN", "DEFAULT_SELF_MOTION"]
 
 
 def _positive(name, value) -> float:
@@ -52,6 +52,9 @@ def _positive(name, value) -> float:
 #: m; a vertex whose predicted path comes this far beyond the contact thickness of an obstacle
 #: gets a constraint in the record (the solve may move it that much off its prediction)
 DEFAULT_SOLVE_MARGIN = 0.01
+#: under the scene runner, self-collision's response waits until some vertex has moved this
+#: fraction of the self-collision thickness since the last response (`CollisionStage.plan`)
+DEFAULT_SELF_MOTION = 0.25
 
 
 class CollisionStage:
@@ -74,6 +77,16 @@ class CollisionStage:
         self_broadphase: ``"bvh"`` or ``"grid"`` (`warp_cloth.collision.broadphase`): how
             self-collision finds its candidate pairs (default ``"bvh"``, the faster here:
             ``warp-cloth bench selfcollision``).
+        self_motion: >= 0, a fraction of the self-collision thickness. Under the scene runner
+            (`plan`), self-collision's response (detection, projection, impact zones) runs
+            once a span of solver steps has moved some vertex more than this fraction of the
+            thickness, and at the end of every frame, on the straight paths from the span's
+            start to its end, instead of after every step (default 0.25; 0: after every
+            step). Every written frame has been resolved, and no pair can come a half
+            thickness closer within a span before it is looked at. Solvers with many small
+            substeps (explicit Euler, PBD) then pay for self-collision a few times a frame
+            instead of every substep: ``warp-cloth bench selfcollision``. Without `plan` (a
+            solver stepped by hand) every step is resolved.
         self_in_solve: with self-collision, the solvers that take contact into their solve
             (implicit Euler, projective dynamics) take the self-contacts too (default True):
             the vertex-triangle and edge-edge pairs whose predicted paths come within the
@@ -99,7 +112,8 @@ class CollisionStage:
 
     def __init__(self, model, obstacles=(), *, solve_margin: float = DEFAULT_SOLVE_MARGIN,
                  edges: bool = True, self_collision=False, self_thickness: float | None = None,
-                 self_broadphase: str = "bvh", self_in_solve: bool = True, **contact_options):
+                 self_broadphase: str = "bvh", self_in_solve: bool = True,
+                 self_motion: float = DEFAULT_SELF_MOTION, **contact_options):
         contact = None
         if isinstance(obstacles, ObstacleContact):
             if contact_options:
@@ -128,10 +142,24 @@ class CollisionStage:
                 from None
         if not (math.isfinite(solve_margin) and solve_margin >= 0):
             raise ValueError(f"solve_margin must be >= 0 metres, got {solve_margin}")
+        try:
+            self_motion = float(self_motion)
+        except (TypeError, ValueError):
+            raise ValueError(f"self_motion must be a fraction of the thickness, got "
+                             f"{self_motion!r}") from None
+        if not (math.isfinite(self_motion) and self_motion >= 0):
+            raise ValueError(f"self_motion must be >= 0 (a fraction of the thickness), got "
+                             f"{self_motion}")
         self.model = model
         self.device = model.device
         self.contact = contact
         self.solve_margin = solve_margin
+        self.self_motion = self_motion
+        # self-collision spans (`plan`): steps per frame (None: no spans), steps of the frame
+        # taken, and on the device the span's start positions, its steps and the "respond" flag
+        self.frame_steps = None
+        self._k = 0
+        self._span = None
         self.self_in_solve = bool(self_in_solve)
         # cloth edges and triangles against the meshes' sharp features (none: no cost)
         from .features import FeatureContact
@@ -167,6 +195,62 @@ class CollisionStage:
         if self.contact is not None:
             return self.contact.thickness
         return self.self_collision.thickness
+
+    # ------------------------------------------------------------------ spans
+    def plan(self, substeps: int) -> None:
+        """Frames of ``substeps`` solver steps (the scene runner calls this): self-collision's
+        response then runs once per span of steps (``self_motion``), and always on the last
+        step of a frame. The decision is on the device (`wp.capture_if` on a flag that a
+        kernel sets when a vertex has moved far enough since the span's start), so a recorded
+        frame graph stays valid; the frame's end is counted on the host, which is why the
+        runner must step whole frames (it does)."""
+        substeps = int(substeps)
+        if substeps < 1:
+            raise ValueError(f"substeps must be >= 1, got {substeps}")
+        self._k = 0
+        if self.self_collision is None or self.self_motion <= 0 or substeps == 1:
+            self.frame_steps = None
+            return
+        self.frame_steps = substeps
+        if self._span is None:
+            d, n = self.device, self.model.num_vertices
+            self._span = (wp.zeros(n, dtype=wp.vec3, device=d),  # start positions
+                          wp.zeros(1, dtype=int, device=d),  # steps in the span
+                          wp.zeros(1, dtype=int, device=d))  # respond now
+
+    def restart_span(self) -> None:
+        """The next step starts a frame (the runner calls this at the start of a run)."""
+        self._k = 0
+
+    def _self_step(self, state, x_start, dt):
+        """Self-collision after one solver step: every step, or once per span (`plan`)."""
+        sc = self.self_collision
+        if self.frame_steps is None:
+            sc.resolve(state, x_start, dt)
+            return
+        from .self_collision import span_begin_kernel, span_step_kernel
+
+        start, steps, flag = self._span
+        d = self.device
+        if self._k == 0:  # a frame starts a span (the previous frame ended with a response)
+            wp.launch(span_begin_kernel, len(start), [x_start, start, steps, flag], device=d)
+        self._k += 1
+        last = self._k == self.frame_steps
+        if last:
+            self._k = 0
+        sc.hold(state)  # the last response's contacts, projected once (no detection)
+        reach = self.self_motion * sc.thickness
+        wp.launch(span_step_kernel, len(start), [state.x, start, reach * reach, int(last),
+                                                 steps, flag], device=d)
+        wp.capture_if(flag, self._span_resolve, state=state, dt=dt)
+
+    def _span_resolve(self, state, dt):
+        from .self_collision import span_begin_kernel
+
+        start, steps, flag = self._span
+        self.self_collision.resolve(state, start, dt, steps)
+        wp.launch(span_begin_kernel, len(start), [state.x, start, steps, flag],
+                  device=self.device)
 
     # ------------------------------------------------------------------ detection
     def detect(self, x_start, x_pred, dt: float, time) -> None:
@@ -207,8 +291,8 @@ class CollisionStage:
             # (measured: 88 crossing pairs on the fold). Its response splits corrections between
             # the layers, so a layer resting on an obstacle can end up to about two thirds of
             # the thickness closer to it than the thickness (measured 3.3 mm of 5 on the fold);
-            # never through it
-            self.self_collision.resolve(state, x_start, dt)
+            # never through it. Every step, or once per span (`plan`)
+            self._self_step(state, x_start, dt)
 
     # position-based iterations
     def begin_iterations(self, x, x_start, dt: float, time=None) -> None:
