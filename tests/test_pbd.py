@@ -428,6 +428,45 @@ def test_tether_distances_are_geodesic_and_k_nearest():
     assert a2[:, 0].tolist() == [-1, 0, 0, -1, -1, -1] and np.isinf(d2[3:]).all()
 
 
+def test_tether_search_kernel_matches_the_python_reference():
+    """The one-thread Warp Dijkstra (`tether_anchors`) against the plain Python one it replaced
+    (`_tether_anchors_py`), on a curved, irregular mesh with many pins, for k = 1, 2, 3: the
+    same anchors in the same order and the same distances (to float64 rounding), also when its
+    heap starts too small and has to grow; and a model's tethers are searched once for PBD and
+    its stretch guard together."""
+    from warp_cloth import tethers
+
+    rng = np.random.default_rng(5)
+    mesh = TriMesh.grid(11, 9, size=1.0, plane="xz")
+    x = mesh.vertices.copy()
+    x[:, 1] = 0.2 * np.sin(3 * x[:, 0]) * np.cos(2 * x[:, 2])  # curved: fast-marching paths
+    x[:, [0, 2]] += rng.uniform(-0.02, 0.02, (len(x), 2))     # irregular triangles
+    pins = np.array([0, 5, 11, 40, 107, 119])
+    for k in (1, 2, 3):
+        a, d = tethers.tether_anchors(x, mesh.triangles, pins, k)
+        a2, d2 = tethers._tether_anchors_py(x, mesh.triangles, pins, k)
+        np.testing.assert_array_equal(a, a2)
+        np.testing.assert_allclose(d, d2, rtol=1e-12)
+    a3, d3 = tethers.tether_anchors(x, mesh.triangles, pins, 3, heap=8)
+    np.testing.assert_array_equal(a3, a)
+    np.testing.assert_allclose(d3, d, rtol=1e-12)
+
+    calls = []
+    orig = tethers.tether_anchors
+
+    def counting(*args, **kw):
+        calls.append(1)
+        return orig(*args, **kw)
+
+    model = ClothModel(TriMesh.grid(6, 6, size=1.0, plane="xz"), pins=[0, 6])
+    try:
+        tethers.tether_anchors = counting
+        solver = make_solver("pbd", model)
+    finally:
+        tethers.tether_anchors = orig
+    assert len(calls) == 1 and solver.num_tethers > 0
+
+
 def test_tethers_are_unilateral_and_anchor_at_the_pins_current_position():
     """Tethers alone (no springs): a vertex nearer its pin than the rest length does not move; one
     farther is put on the sphere about the pin, along the line to it; pins that move carry it."""

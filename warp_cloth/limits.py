@@ -78,7 +78,7 @@ import math
 import numpy as np
 import warp as wp
 
-from .tethers import PinStretch, tether_anchors, tether_kernel
+from .tethers import PinStretch, model_tether_anchors, tether_kernel
 from .util import positive_finite
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -663,8 +663,7 @@ class StrainLimit(_JacobiLimit):
         self._tether = None
         if (self.tethers and ne and len(model.pins)
                 and math.isfinite(self.sigma_max) and self.gauss_seidel):
-            anc, dist = tether_anchors(model.mesh.vertices, model.mesh.triangles, model.pins,
-                                       self.tethers)
+            anc, dist = model_tether_anchors(model, self.tethers)
             if (anc >= 0).any():
                 # sigma_max times the rest geodesic (exact on a planar rest mesh, the
                 # fast-marching estimate elsewhere): a tether the edge limits already imply

@@ -102,7 +102,7 @@ import warp as wp
 
 from ..forces.springs import SpringForce
 from ..limits import color_constraints, edge_projection
-from ..tethers import PinStretch, tether_anchors, tether_kernel  # noqa: F401 (tether_anchors re-exported)
+from ..tethers import PinStretch, model_tether_anchors, tether_anchors, tether_kernel  # noqa: F401 (tether_anchors re-exported)
 from .base import Solver
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -423,7 +423,7 @@ class PositionBased(Solver):
         self.tethers = bool(tethers) and len(model.pins) > 0
         if self.tethers:
             k = min(self.tether_pins, len(model.pins))
-            anchors, dist = tether_anchors(model.mesh.vertices, model.mesh.triangles, model.pins, k)
+            anchors, dist = model_tether_anchors(model, k)
             ok = anchors >= 0
             self.num_tethers = int(ok.sum())
             self.tethers = self.num_tethers > 0
