@@ -149,7 +149,7 @@ def test_cli_dry_run_lists_runs_with_their_state(pool_sweep, capsys):
 
 
 def test_ray_sweep(tmp_path):
-    pytest.importorskip("ray")
+    import ray  # noqa: F401 - in the test extra: the Ray executor must run here
     spec = load_spec(write_spec(tmp_path, SPEC))
     res = run_sweep(spec, executor="ray", workers=2, progress=False)
     assert res["executor"] == "ray"
@@ -239,3 +239,19 @@ def test_the_sweep_driver_does_not_load_warp(tmp_path):
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          check=True).stdout.split()
     assert out[-2:] == ["NOWARP", "0"] and len(out) > 2  # the 4 runs listed, then the probe
+
+
+def test_example_specs_expand_to_the_48_measured_runs():
+    """The README's sweep measurements use these two specs: 48 runs each, the same runs but for
+    the frames (30 and 240), 12 of them explicit Euler."""
+    import os
+
+    root = os.path.join(os.path.dirname(__file__), "..", "examples")
+    short = expand(load_spec(os.path.join(root, "sweep_hanging.toml")))
+    long = expand(load_spec(os.path.join(root, "sweep_hanging_long.toml")))
+    assert len(short) == len(long) == 48
+    assert sum(r["solver"] == "explicit" for r in short) == 12
+    strip = [{k: v for k, v in r.items() if k not in ("frames", "run_id", "out")} for r in short]
+    assert strip == [{k: v for k, v in r.items() if k not in ("frames", "run_id", "out")}
+                     for r in long]
+    assert {r["frames"] for r in short} == {30} and {r["frames"] for r in long} == {240}
