@@ -350,6 +350,46 @@ def test_default_inner_solver_is_cg_with_a_collision_stage():
     assert kept.linear_name == "chebyshev"
 
 
+def _energy64(model, st):
+    """Kinetic + gravity + spring energy of the free vertices, summed on the host in float64."""
+    x = st.x.numpy().astype(np.float64)
+    v = st.v.numpy().astype(np.float64)
+    m = model.masses.astype(np.float64)
+    free = model.inverse_masses > 0
+    e = 0.5 * np.sum((m * np.sum(v * v, 1))[free]) - np.sum((m * (x @ np.asarray(
+        model.gravity, np.float64)))[free])
+    p = np.asarray(model.spring_pairs).reshape(-1, 2)
+    d = np.linalg.norm(x[p[:, 0]] - x[p[:, 1]], axis=1) - np.asarray(model.spring_rest)
+    return e + 0.5 * np.sum(np.asarray(model.spring_stiffness, np.float64) * d * d)
+
+
+def test_pd_on_the_table_gains_no_energy_from_contact():
+    """The table scene (16 x 16, 90 frames, static obstacles: nothing does work on the cloth)
+    under PD: the largest one-frame energy rise (float64 on the host) stays under 1e-4 J (the
+    energy guard's tolerance is 1e-5 M |g| x 1 m a step). Both parts are needed, and each
+    test below fails without one: the contact iterations go on while the step gains energy
+    (without: 1.7e-3 J), and a loaded contact's next target is raised by its last sag, so the
+    response after the solve does not push it out against the springs every step (without:
+    1.7e-4 J)."""
+    from warp_cloth.contact_scenes import table
+
+    def rise(guard=True, sag=True):
+        scene = table(solver="pd", res=16, frames=90)
+        if not guard:
+            scene.solver._energy_guard = lambda: False
+        if not sag:
+            scene.solver._contact().sag_cap = 0.0
+        E = []
+        scene.run(None, quiet=True, on_frame=lambda f, st: E.append(_energy64(scene.model, st)))
+        return float(np.diff(E).max()), scene.solver.stats
+
+    both, st = rise()
+    assert both < 1e-4, both
+    assert st["energy_gain_steps"] == 0 and st["contact_iterations_total"] > 0
+    assert rise(guard=False)[0] > 1e-3
+    assert rise(sag=False)[0] > 1e-4
+
+
 def test_pd_contact_iterations_run_on_impact_and_are_counted(capsys):
     """With a collision stage, PD adds iterations while its residual is above
     ``contact_residual`` (device-side loop); they are counted, and steps that use them all are

@@ -159,7 +159,9 @@ def test_cli_signal_finishes_cleanly(tmp_path, sig, code, says):
     while not os.path.exists(os.path.join(folder, "000001.usdc")) and time.monotonic() - t0 < 120:
         time.sleep(0.01)
     proc.send_signal(sig)
-    _, err = proc.communicate(timeout=60)
+    # the signal is handled between Python bytecodes: a kernel module compiling on a cold cache
+    # at that moment (the frame graph's, on a loaded machine) delays it; 60 s was once too short
+    _, err = proc.communicate(timeout=300)
     assert proc.returncode == code
     assert says in err and "Traceback" not in err
     times, pts, stage = read_points(out)

@@ -59,6 +59,15 @@ Limitation (measured, ``warp-cloth run table --solver pd``): projective dynamics
 10 iterations per step does not propagate sliding through a cloth held by static friction over
 a large area: the table scene's sheet (mu_T = 0.15, 55 % overhanging) stays on the table, where
 explicit, position-based and implicit Euler let it slide off.
+
+**Sag.** A penalty gives under load: a vertex pressed against a surface by the cloth's tension
+(the table's sides, held by the draped part) ends its solve about ``load dt^2 / (kappa m)``
+inside its target, 0.1-0.5 mm there, and the response after the solve (`CollisionStage.resolve`)
+pushed it out against the springs every step: energy put in at every step (+1.8e-3 J in one on
+the table under PD). `end_step` keeps each (vertex, obstacle) pair's sag below its target (at
+most `SAG_CAP` of the thickness) and the next `detect` raises that pair's target by it, so a
+steadily loaded contact ends its solve at the thickness (the augmented-Lagrangian idea with the
+last step's multiplier); a pair without an entry has no sag.
 """
 
 from __future__ import annotations
@@ -81,6 +90,10 @@ DEFAULT_CONTACT_STIFFNESS = 1.0e3
 DEFAULT_FRICTION_VELOCITY = 1.0e-4
 #: record entries per thread (a thread costs its set-up on the CPU whether its entries exist)
 BATCH = 16
+#: the largest sag (a fraction of the contact thickness) by which a loaded contact's next
+#: target is raised (`ContactCoupling.end_step`); a deeper one, an impact the solve did not
+#: stop, is left to the response after the solve rather than pushed out by the next solve
+SAG_CAP = 0.2
 
 
 @wp.func
@@ -198,6 +211,34 @@ def normal_force_kernel(
         g, im = entry_gap(rec, e, x, inv_mass)
         if g < 0.0 and im > 0.0:
             wp.atomic_add(lam, rec.vertex[e][0] * num_sources + rec.source[e], -kappa_dt2 / im * g)
+
+
+@wp.kernel
+def sag_apply_kernel(rec: ContactRecord, sag: wp.array(dtype=float), num_sources: int,
+                     num_threads: int):
+    """Each vertex-obstacle entry's target raised by its pair's sag of the last step
+    (`ContactCoupling.end_step`)."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        if rec.kind[e] == KIND_VERTEX_OBSTACLE and rec.source[e] >= 0:
+            rec.offset[e] = rec.offset[e] + sag[rec.vertex[e][0] * num_sources + rec.source[e]]
+
+
+@wp.kernel
+def sag_update_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3),
+                      inv_mass: wp.array(dtype=float), cap: float, num_sources: int,
+                      num_threads: int, sag: wp.array(dtype=float)):
+    """After the solve: each vertex-obstacle pair's sag below its (raised) target, at most
+    ``cap``, for the next step (``sag`` cleared before: pairs without an entry have none)."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        if rec.kind[e] != KIND_VERTEX_OBSTACLE or rec.source[e] < 0:
+            continue
+        g, im = entry_gap(rec, e, x, inv_mass)
+        if g < 0.0 and im > 0.0:
+            sag[rec.vertex[e][0] * num_sources + rec.source[e]] = wp.min(-g, cap)
 
 
 @wp.kernel
@@ -481,6 +522,12 @@ class ContactCoupling:
         self.sources = max(1, len(stage.obstacles))
         # normal force per (vertex, obstacle) at the end of the last step: friction's bound
         self.lam = wp.zeros(model.num_vertices * self.sources, dtype=float, device=self.device)
+        # how far below its target the solve left each (vertex, obstacle) pair at the end of
+        # the last step: the penalty's give under the load it carries. The next step's target
+        # is raised by it, so a loaded contact ends at the thickness instead of inside it
+        self.sag = wp.zeros(model.num_vertices * self.sources, dtype=float, device=self.device)
+        has_obstacles = getattr(stage, "contact", None) is not None
+        self.sag_cap = SAG_CAP * stage.thickness if has_obstacles else 0.0
         self._no_flags = wp.zeros(0, dtype=int, device=self.device)
         # self-contacts inside the solve (stage.self_in_solve): their own record, each entry's
         # activity at the last assembly, and the off-diagonal Hessian as an operator term
@@ -507,6 +554,9 @@ class ContactCoupling:
         """The record for this step (`CollisionStage.detect`), the active count cleared, the
         prediction kept (restitution reads the speed a vertex arrives with from it)."""
         self.stage.detect(x_start, x_pred, dt, time)
+        if self.sag_cap > 0.0:
+            wp.launch(sag_apply_kernel, self.threads,
+                      [self.record, self.sag, self.sources, self.threads], device=self.device)
         self.active.zero_()
         wp.copy(self.x_pred, x_pred)
         if self.self_record is not None:
@@ -605,6 +655,11 @@ class ContactCoupling:
         wp.launch(normal_force_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, self.kappa / (dt * dt), self.threads,
                    self.sources, self.lam], device=self.device)
+        if self.sag_cap > 0.0:
+            self.sag.zero_()
+            wp.launch(sag_update_kernel, self.threads,
+                      [self.record, x, self.model.inv_mass, self.sag_cap, self.sources,
+                       self.threads, self.sag], device=self.device)
         wp.launch(contact_velocity_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, 1.0 / dt,
                    self.stage.contact.slack if self.stage.contact is not None else 0.0,

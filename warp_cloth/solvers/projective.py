@@ -77,6 +77,12 @@ __all__ = ["ProjectiveDynamics", "PDSystemOperator"]
 
 
 # ----------------------------------------------------------------------------------- kernels
+#: the energy rise (a fraction of ``M |g|`` times 1 m) above which PD's contact iterations go on
+#: (`ProjectiveDynamics`, ``contact_iterations``): float32 positions round a stiff spring's
+#: energy at about this level (the implicit solver's energy guard uses the same)
+ENERGY_EPS = 1.0e-5
+
+
 @wp.kernel
 def pd_predict_kernel(
     x: wp.array(dtype=wp.vec3),
@@ -182,22 +188,55 @@ def pd_converged_kernel(res: wp.array(dtype=float), tolerance: float,
 
 @wp.kernel
 def pd_more_kernel(res: wp.array(dtype=float), threshold: float, limit: int,
-                   flag: wp.array(dtype=wp.int32), counters: wp.array(dtype=wp.int32)):
+                   flag: wp.array(dtype=wp.int32), counters: wp.array(dtype=wp.int32),
+                   energy: wp.array(dtype=wp.float64), eps: float, guard: int):
     """After an evaluation of the contact iterations: another one runs (``flag[0] = 1``) while
-    the residual ``res[0]`` is above ``threshold`` and fewer than ``limit`` ran this step
-    (``counters[0]``: extra iterations this step, ``counters[1]``: over all steps, ``counters[2]``:
-    steps that stopped at ``limit`` still above it); clears ``res[0]``."""
+    the residual ``res[0]`` is above ``threshold``, or (``guard``) the energy at the iterate
+    ``energy[1]`` exceeds the step's start ``energy[0]`` by more than ``eps``, and fewer than
+    ``limit`` ran this step (``counters[0]``: extra iterations this step, ``counters[1]``: over
+    all steps, ``counters[2]``: steps that stopped at ``limit`` still above the residual,
+    ``counters[3]``: steps that stopped there still gaining energy); clears ``res[0]``."""
     r = res[0]
     res[0] = 0.0
+    gain = guard != 0 and energy[1] - energy[0] > wp.float64(eps)
     more = int(0)
-    if r > threshold:
+    if r > threshold or gain:
         if counters[0] < limit:
             more = 1
             counters[0] = counters[0] + 1
             counters[1] = counters[1] + 1
         else:
-            counters[2] = counters[2] + 1
+            if r > threshold:
+                counters[2] = counters[2] + 1
+            if gain:
+                counters[3] = counters[3] + 1
     flag[0] = more
+
+
+@wp.kernel
+def pd_energy_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                     mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float),
+                     gravity: wp.vec3, out: wp.array(dtype=wp.float64)):
+    """Kinetic energy and gravity's potential of the free vertices into ``out[0]`` (float64)."""
+    i = wp.tid()
+    if inv_mass[i] > 0.0:
+        vi = v[i]
+        wp.atomic_add(out, 0, wp.float64(0.5 * mass[i] * wp.dot(vi, vi)
+                                          - mass[i] * wp.dot(gravity, x[i])))
+
+
+@wp.kernel
+def pd_spring_energy_kernel(x: wp.array(dtype=wp.vec3), springs: wp.array2d(dtype=wp.int32),
+                            rest: wp.array(dtype=float), stiffness: wp.array(dtype=float),
+                            out: wp.array(dtype=wp.float64)):
+    e = wp.tid()
+    s = wp.float64(wp.length(x[springs[e, 0]] - x[springs[e, 1]])) - wp.float64(rest[e])
+    wp.atomic_add(out, 0, wp.float64(0.5) * wp.float64(stiffness[e]) * s * s)
+
+
+@wp.kernel
+def pd_add64_kernel(src: wp.array(dtype=float), dst: wp.array(dtype=wp.float64)):
+    dst[0] = dst[0] + wp.float64(src[0])
 
 
 @wp.kernel
@@ -459,8 +498,13 @@ class ProjectiveDynamics(Solver):
             `frame_end` (a warning with the frame from the scene runner). Capturable.
         contact_iterations: with a collision stage, up to this many more local/global
             iterations after ``iterations``, run while the implicit-Euler residual
-            ``max_i dt^2 |grad F_i| / m_i`` is above ``contact_residual`` (a device-side loop,
-            `wp.capture_while`: capturable). Impact is where a fixed count stops short: the
+            ``max_i dt^2 |grad F_i| / m_i`` is above ``contact_residual``, or while the step's
+            energy (kinetic, gravity, springs, bending; float64 sums) is above its start by
+            more than `ENERGY_EPS` ``M |g|`` x 1 m (not with scripted pins, moving obstacles or
+            wind, which do work; a device-side loop, `wp.capture_while`: capturable). The
+            energy criterion took the drape's largest one-frame rise from 8.8e-4 J to 3e-5 J
+            (with the contact sag of `contact_coupling`); steps that end their iterations still
+            gaining are counted (``energy_gain_steps``) and reported. Impact is where a fixed count stops short: the
             largest one-frame energy gain fell from 2.3e-3 to 1.2e-3 J on the table scene and
             from 2.5e-3 to 0.9e-3 J on the drape; at rest or sliding they rarely run
             (`warp-cloth bench contact`: within noise). 0: none. Counted in ``stats``
@@ -504,10 +548,17 @@ class ProjectiveDynamics(Solver):
         self.contact_iterations = int(contact_iterations)
         self.contact_residual = positive_finite(contact_residual, "pd: contact_residual", "metres")
         self._more_flag = wp.zeros(1, dtype=wp.int32, device=model.device)
-        self._more = wp.zeros(3, dtype=wp.int32, device=model.device)
+        self._more = wp.zeros(4, dtype=wp.int32, device=model.device)
+        # the energy criterion of the contact iterations (`_energy_guard`): [start, iterate]
+        self._e64 = wp.zeros(2, dtype=wp.float64, device=model.device)
+        self._e32 = wp.zeros(1, dtype=float, device=model.device)
+        self._e_views = (self._e64[0:1], self._e64[1:2])
+        mg = float(np.sum(model.masses)) * float(np.linalg.norm(model.gravity))
+        self._energy_eps = max(ENERGY_EPS * mg, 1.0e-9)
         self._more_step = self._more[0:1]  # this step's count (a view made once, not per step)
         self._more_res = wp.zeros(1, dtype=float, device=model.device)
         self._more_seen = 0
+        self._gain_seen = 0
         self.tolerance = (None if tolerance is None
                           else positive_finite(tolerance, "pd: tolerance", "metres"))
         self._res = wp.zeros(3, dtype=float, device=model.device)
@@ -687,6 +738,9 @@ class ProjectiveDynamics(Solver):
         if self.energy_terms:
             self._energy32.zero_()
         decay = math.exp(-m.damping * dt)
+        guard = cc is not None and self.contact_iterations > 0 and self._energy_guard()
+        if guard:  # the energy at the step's start (x0, the start velocity)
+            self._energy(self.x0, state.v, 0)
         K = self.iterations
         for k in range(K):
             if m.num_springs:
@@ -718,16 +772,45 @@ class ProjectiveDynamics(Solver):
                        1 if k == K - 1 else 0, self._omegas[k], self.x_prev], device=d)
         if cc is not None and self.contact_iterations > 0 and not self.direct:
             self._more_step.zero_()
-            self._evaluate(state, dt, cc)
-            wp.capture_while(self._more_flag, self._contact_iteration, state=state, dt=dt, cc=cc)
+            self._evaluate(state, dt, cc, guard)
+            wp.capture_while(self._more_flag, self._contact_iteration, state=state, dt=dt, cc=cc,
+                             guard=guard)
         if cc is not None:
             cc.end_step(state.x, state.v, dt)
         self._stepped = True
 
-    def _evaluate(self, state, dt, cc):
+    def _energy_guard(self) -> bool:
+        """Whether the contact iterations also run while the step gains energy: only when
+        nothing outside the cloth does work on it (no scripted pins, no moving obstacle, no
+        explicit force such as wind)."""
+        m = self.model
+        if getattr(m, "pin_path", None) is not None or any(
+                type(t).__name__ == "WindForce" for t in m.force_terms):
+            return False
+        return not any(getattr(o, "moving", False) for o in self.collision.obstacles)
+
+    def _energy(self, x, v, slot: int) -> None:
+        """Kinetic, gravity and elastic energy at ``x``, ``v`` into ``_e64[slot]`` (float64
+        sums; the other force terms' energy in float32)."""
+        m, d = self.model, self.device
+        out = self._e_views[slot]
+        out.zero_()
+        wp.launch(pd_energy_kernel, m.num_vertices,
+                  [x, v, m.mass, m.inv_mass, wp.vec3(*m.gravity), out], device=d)
+        if m.num_springs:
+            wp.launch(pd_spring_energy_kernel, m.num_springs,
+                      [x, m.spring_indices, m.spring_rest_length, m.spring_k, out], device=d)
+        for t in self.energy_terms:  # bending (wind does work and has no energy)
+            self._e32.zero_()
+            t.energy(x, self._e32)
+            wp.launch(pd_add64_kernel, 1, [self._e32, out], device=d)
+
+    def _evaluate(self, state, dt, cc, guard=False):
         """Local step and right-hand side at the current iterate (scratch slot K), its residual,
         and whether another contact iteration runs (`pd_more_kernel`)."""
         m, d, A, K = self.model, self.device, self.operator, self.iterations
+        if guard:  # the energy at the iterate (its velocity: the last update set it)
+            self._energy(state.x, state.v, 1)
         if m.num_springs:
             wp.launch(pd_local_kernel, m.num_springs,
                       [state.x, m.spring_indices, m.spring_rest_length, m.spring_k, self.d,
@@ -742,17 +825,18 @@ class ProjectiveDynamics(Solver):
         wp.launch(pd_residual_kernel, m.num_vertices, [self.b, m.inv_mass, dt * dt,
                                                        self._more_res], device=d)
         wp.launch(pd_more_kernel, 1, [self._more_res, self.contact_residual,
-                                      self.contact_iterations, self._more_flag, self._more],
+                                      self.contact_iterations, self._more_flag, self._more,
+                                      self._e64, self._energy_eps, int(guard)],
                   device=d)
 
-    def _contact_iteration(self, state, dt, cc):
+    def _contact_iteration(self, state, dt, cc, guard=False):
         """One more global step and update (velocity set), then `_evaluate`."""
         m = self.model
         self.linear.solve(self.operator, self.b, self.dx)
         wp.launch(pd_update_kernel, m.num_vertices,
                   [state.x, self.dx, self.x0, state.v, m.inv_mass, math.exp(-m.damping * dt),
                    1.0 / dt, 1, 1.0, self.x_prev], device=self.device)
-        self._evaluate(state, dt, cc)
+        self._evaluate(state, dt, cc, guard)
 
     def _solve_direct(self, cc=None):
         """Host decision by design: dx_f = S_ff^-1 b_f for the three components (float64).
@@ -794,7 +878,8 @@ class ProjectiveDynamics(Solver):
             "linear_residual": info.get("residual", float("nan")),
             "rho": self.rho,
             **({} if self._coupling is None else dict(zip(
-                ("contact_iterations", "contact_iterations_total", "contact_short_steps"),
+                ("contact_iterations", "contact_iterations_total", "contact_short_steps",
+                 "energy_gain_steps"),
                 (int(c) for c in self._more.numpy())))),
             **({} if self.tolerance is None else {
                 "residual": float(self._res.numpy()[1]),
@@ -817,6 +902,11 @@ class ProjectiveDynamics(Solver):
             if new > 0:
                 out.append(f"pd: {new} step(s) used all {self.contact_iterations} contact "
                            f"iterations with the residual still above {self.contact_residual:g} m")
+            g = int(self._more.numpy()[3])
+            new, self._gain_seen = g - self._gain_seen, g
+            if new > 0:
+                out.append(f"pd: {new} step(s) used all {self.contact_iterations} contact "
+                           f"iterations still gaining energy")
         return out + self._tolerance_messages()
 
     def _tolerance_messages(self) -> list:
