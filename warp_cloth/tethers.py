@@ -174,6 +174,15 @@ def _heap_push(hd: wp.array(dtype=wp.float64), hv: wp.array(dtype=wp.int32),
     return size + 1
 
 
+@wp.func
+def _has_label(label_s: wp.array2d(dtype=wp.int32), count: int, v: int, s: int):
+    """Whether vertex ``v``'s first ``count`` labels include source ``s``."""
+    for j in range(count):
+        if label_s[v, j] == s:
+            return True
+    return False
+
+
 @wp.kernel
 def geodesic_labels_kernel(x: wp.array(dtype=wp.vec3d), tris: wp.array2d(dtype=wp.int32),
                            vt_start: wp.array(dtype=wp.int32), vt: wp.array(dtype=wp.int32),
@@ -183,7 +192,7 @@ def geodesic_labels_kernel(x: wp.array(dtype=wp.vec3d), tris: wp.array2d(dtype=w
                            nlab: wp.array(dtype=wp.int32), hd: wp.array(dtype=wp.float64),
                            hv: wp.array(dtype=wp.int32), hs: wp.array(dtype=wp.int32),
                            full: wp.array(dtype=wp.int32)):
-    """`_dijkstra_py` in one thread (run on the CPU: a set-up step): the same multi-source
+    """`_tether_anchors_py` in one thread (run on the CPU: a set-up step): the same multi-source
     Dijkstra with the fast-marching triangle update, the labels in finalisation order."""
     size = int(0)
     for j in range(srcs.shape[0]):
@@ -213,13 +222,7 @@ def geodesic_labels_kernel(x: wp.array(dtype=wp.vec3d), tris: wp.array2d(dtype=w
                 else:
                     break
         nv = nlab[v]
-        if nv >= k or (is_src[v] != 0 and v != s):
-            continue
-        seen = int(0)
-        for j in range(nv):
-            if label_s[v, j] == s:
-                seen = 1
-        if seen != 0:
+        if nv >= k or (is_src[v] != 0 and v != s) or _has_label(label_s, nv, v, s):
             continue
         label_s[v, nv] = s
         label_d[v, nv] = d
@@ -240,13 +243,7 @@ def geodesic_labels_kernel(x: wp.array(dtype=wp.vec3d), tris: wp.array2d(dtype=w
                     u = o1
                     w = o0
                 nu = nlab[u]
-                if is_src[u] != 0 or nu >= k:
-                    continue
-                has = int(0)
-                for j in range(nu):
-                    if label_s[u, j] == s:
-                        has = 1
-                if has != 0:
+                if is_src[u] != 0 or nu >= k or _has_label(label_s, nu, u, s):
                     continue
                 size = _heap_push(hd, hv, hs, size, d + wp.length(x[v] - x[u]), u, s)
                 if size < 0:
@@ -375,27 +372,8 @@ def _unfold(xa, xb, xc, da, db):
 
 
 def _tether_anchors_py(vertices, triangles, sources, k: int = 2):
-    """Reference implementation of `tether_anchors` in plain Python (the tests compare them;
-    about 160 us a vertex: 41 s at 262k vertices)."""
-    return _dijkstra_py(vertices, triangles, sources, k)
-
-
-def _dijkstra_py(vertices, triangles, sources, k: int = 2):
-    """The ``k`` nearest sources of every vertex by geodesic distance on the mesh, and the
-    distances (the long-range attachments of Kim, Chentanez and Müller 2012).
-
-    A multi-source Dijkstra over the mesh in which a vertex accepts one label per distinct
-    source, up to ``k``; a label reaches a vertex along an edge or across a triangle whose other
-    two vertices carry the same source, with the source unfolded into the triangle's plane
-    (`_unfold`), so distances are exact on a planar (or developable, unrolled) rest mesh, not the
-    up-to-8 % longer edge paths of a grid; elsewhere the first-order fast-marching approximation.
-    Paths do not pass through another source. Cost ``O(k T log(k T))`` for ``T`` triangles,
-    whatever the number of sources.
-
-    Returns ``(anchors, dist)``, (N, k) arrays: source vertex indices (-1 where fewer than ``k``
-    sources reach the vertex, e.g. in another connected component) and distances (inf there).
-    Sources themselves get no label.
-    """
+    """`tether_anchors` in plain Python, the same search step for step: the reference the tests
+    compare the kernel with (about 160 us a vertex: 41 s at 262k vertices)."""
     import heapq
 
     x = [tuple(map(float, p)) for p in np.asarray(vertices, dtype=np.float64)]

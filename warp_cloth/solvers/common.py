@@ -48,3 +48,20 @@ def move_pins_kernel(
 @wp.kernel
 def advance_time_kernel(time: wp.array(dtype=wp.float64), dt: float):
     time[0] = time[0] + wp.float64(dt)
+
+
+@wp.kernel
+def spring_energy64_kernel(x: wp.array(dtype=wp.vec3), springs: wp.array2d(dtype=wp.int32),
+                           rest: wp.array(dtype=float), stiffness: wp.array(dtype=float),
+                           out: wp.array(dtype=wp.float64)):
+    """``sum_e k_e / 2 (|x_i - x_j| - L_e)^2`` added to ``out[0]`` in float64 (the energy checks
+    of implicit Euler and projective dynamics: float32 sums round at their tolerance)."""
+    e = wp.tid()
+    s = wp.float64(wp.length(x[springs[e, 0]] - x[springs[e, 1]])) - wp.float64(rest[e])
+    wp.atomic_add(out, 0, wp.float64(0.5) * wp.float64(stiffness[e]) * s * s)
+
+
+@wp.kernel
+def to_float64_kernel(src: wp.array(dtype=float), dst: wp.array(dtype=wp.float64)):
+    """``dst[0] += src[0]`` (a float32 energy into a float64 sum)."""
+    dst[0] = dst[0] + wp.float64(src[0])

@@ -93,6 +93,7 @@ import warp as wp
 
 from ..forces.springs import spring_force
 from .base import Solver
+from .common import spring_energy64_kernel, to_float64_kernel
 from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
 from .linear import CGSolver, SpringSystemOperator, make_linear_solver, spring_block_matrix
 
@@ -445,15 +446,6 @@ def ls_select_kernel(energy: wp.array(dtype=wp.float64), steps: wp.vec4, armijo:
 
 
 @wp.kernel
-def spring_energy64_kernel(x: wp.array(dtype=wp.vec3), springs: wp.array2d(dtype=wp.int32),
-                           rest: wp.array(dtype=float), stiffness: wp.array(dtype=float),
-                           out: wp.array(dtype=wp.float64)):
-    e = wp.tid()
-    s = wp.float64(wp.length(x[springs[e, 0]] - x[springs[e, 1]])) - wp.float64(rest[e])
-    wp.atomic_add(out, 0, wp.float64(0.5) * wp.float64(stiffness[e]) * s * s)
-
-
-@wp.kernel
 def step_energy_kernel(x: wp.array(dtype=wp.vec3), x_prev: wp.array(dtype=wp.vec3),
                        v: wp.array(dtype=wp.vec3), disp: wp.array(dtype=wp.vec3),
                        mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float),
@@ -476,11 +468,6 @@ def step_energy_kernel(x: wp.array(dtype=wp.vec3), x_prev: wp.array(dtype=wp.vec
 def add_float32_kernel(src: wp.array(dtype=float), dst: wp.array(dtype=wp.float64)):
     j = wp.tid()
     dst[j] = dst[j] + wp.float64(src[j])
-
-
-@wp.kernel
-def to_float64_kernel(src: wp.array(dtype=float), dst: wp.array(dtype=wp.float64)):
-    dst[0] = dst[0] + wp.float64(src[0])
 
 
 # ----------------------------------------------------------------------------------- helpers

@@ -68,6 +68,7 @@ import warp as wp
 
 from ..util import positive_finite
 from .base import Solver
+from .common import spring_energy64_kernel, to_float64_kernel
 from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
 from .linear import LINEAR_SOLVERS, estimate_spectral_radius, make_linear_solver
 
@@ -223,20 +224,6 @@ def pd_energy_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
         vi = v[i]
         wp.atomic_add(out, 0, wp.float64(0.5 * mass[i] * wp.dot(vi, vi)
                                           - mass[i] * wp.dot(gravity, x[i])))
-
-
-@wp.kernel
-def pd_spring_energy_kernel(x: wp.array(dtype=wp.vec3), springs: wp.array2d(dtype=wp.int32),
-                            rest: wp.array(dtype=float), stiffness: wp.array(dtype=float),
-                            out: wp.array(dtype=wp.float64)):
-    e = wp.tid()
-    s = wp.float64(wp.length(x[springs[e, 0]] - x[springs[e, 1]])) - wp.float64(rest[e])
-    wp.atomic_add(out, 0, wp.float64(0.5) * wp.float64(stiffness[e]) * s * s)
-
-
-@wp.kernel
-def pd_add64_kernel(src: wp.array(dtype=float), dst: wp.array(dtype=wp.float64)):
-    dst[0] = dst[0] + wp.float64(src[0])
 
 
 @wp.kernel
@@ -798,12 +785,12 @@ class ProjectiveDynamics(Solver):
         wp.launch(pd_energy_kernel, m.num_vertices,
                   [x, v, m.mass, m.inv_mass, wp.vec3(*m.gravity), out], device=d)
         if m.num_springs:
-            wp.launch(pd_spring_energy_kernel, m.num_springs,
+            wp.launch(spring_energy64_kernel, m.num_springs,
                       [x, m.spring_indices, m.spring_rest_length, m.spring_k, out], device=d)
         for t in self.energy_terms:  # bending (wind does work and has no energy)
             self._e32.zero_()
             t.energy(x, self._e32)
-            wp.launch(pd_add64_kernel, 1, [self._e32, out], device=d)
+            wp.launch(to_float64_kernel, 1, [self._e32, out], device=d)
 
     def _evaluate(self, state, dt, cc, guard=False):
         """Local step and right-hand side at the current iterate (scratch slot K), its residual,
