@@ -235,18 +235,10 @@ def revert_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3), v: wp.array(dt
         stats[slot] = stats[slot] + 1
 
 
-@wp.kernel
-def inelastic_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-                           acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int)):
-    """``x += d`` (``d = acc / cnt``, the Jacobi average) and the velocity loses the component
-    that approached along ``d``: ``v += max(-v . d^, 0) d^`` (inelastic); clears the
-    accumulators. For a resting contact over one step this is ``v += d / dt`` (the step's fall
-    is both the approach and the correction). Where the correction is larger than the
-    approach (a pair already closer than the thickness, or a path that entered the thickness
-    and was leaving again at the end of a span of steps, `CollisionStage.plan`), ``v += d /
-    dt`` made a separation speed out of the overlap: measured, a 1 mm correction over one
-    step kicked the folded sheet to 5 m/s."""
-    i = wp.tid()
+@wp.func
+def inelastic_apply(i: int, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                    acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int)):
+    """`inelastic_apply_kernel` for vertex ``i``."""
     c = cnt[i]
     if c > 0:
         d = acc[i] / float(c)
@@ -262,6 +254,20 @@ def inelastic_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3
 
 
 @wp.kernel
+def inelastic_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                           acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int)):
+    """``x += d`` (``d = acc / cnt``, the Jacobi average) and the velocity loses the component
+    that approached along ``d``: ``v += max(-v . d^, 0) d^`` (inelastic); clears the
+    accumulators. For a resting contact over one step this is ``v += d / dt`` (the step's fall
+    is both the approach and the correction). Where the correction is larger than the
+    approach (a pair already closer than the thickness, or a path that entered the thickness
+    and was leaving again at the end of a span of steps, `CollisionStage.plan`), ``v += d /
+    dt`` made a separation speed out of the overlap: measured, a 1 mm correction over one
+    step kicked the folded sheet to 5 m/s."""
+    inelastic_apply(wp.tid(), x, v, acc, cnt)
+
+
+@wp.kernel
 def span_begin_kernel(x: wp.array(dtype=wp.vec3), start: wp.array(dtype=wp.vec3),
                       steps: wp.array(dtype=int), flag: wp.array(dtype=int)):
     """A self-collision span (`CollisionStage.plan`) starts at ``x``: no step taken, no response due."""
@@ -273,12 +279,15 @@ def span_begin_kernel(x: wp.array(dtype=wp.vec3), start: wp.array(dtype=wp.vec3)
 
 
 @wp.kernel
-def span_step_kernel(x: wp.array(dtype=wp.vec3), start: wp.array(dtype=wp.vec3),
-                     reach2: float, last: int, steps: wp.array(dtype=int),
-                     flag: wp.array(dtype=int)):
-    """One more step in the span; the response is due (``flag``) on the frame's last step or
-    once a vertex is farther than ``sqrt(reach2)`` from its start of the span."""
+def span_step_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                     acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int),
+                     start: wp.array(dtype=wp.vec3), reach2: float, last: int,
+                     steps: wp.array(dtype=int), flag: wp.array(dtype=int)):
+    """One more step in the span: the held contacts' correction applied (`SelfCollision.hold`),
+    then the response is due (``flag``) on the frame's last step or once a vertex is farther than
+    ``sqrt(reach2)`` from its start of the span (one launch for both)."""
     i = wp.tid()
+    inelastic_apply(i, x, v, acc, cnt)
     if i == 0:
         steps[0] = steps[0] + 1
         if last != 0:
@@ -426,15 +435,12 @@ class SelfCollision:
                            done, record, ee_pairs, npairs], device=d)
 
     def hold(self, state) -> None:
-        """One Jacobi projection of the contacts the last `resolve` found (no detection): keeps
-        a layer resting on another from sinking into it between the responses of a span
-        (`CollisionStage.plan`)."""
-        m, d = self.model, self.device
+        """One Jacobi projection of the contacts the last `resolve` found (no detection), into
+        ``acc`` / ``cnt``: keeps a layer resting on another from sinking into it between the
+        responses of a span (`CollisionStage.plan`, whose `span_step_kernel` applies it)."""
         wp.launch(jacobi_project_kernel, self.threads,
-                  [self.record, 0, state.x, m.inv_mass, self.acc, self.cnt, self._held,
-                   0.01 * self.thickness, self.threads], device=d)
-        wp.launch(inelastic_apply_kernel, m.num_vertices,
-                  [state.x, state.v, self.acc, self.cnt], device=d)
+                  [self.record, 0, state.x, self.model.inv_mass, self.acc, self.cnt, self._held,
+                   0.01 * self.thickness, self.threads], device=self.device)
 
     def _project(self, state, dt):
         m, d = self.model, self.device

@@ -240,8 +240,9 @@ class CollisionStage:
             self._k = 0
         sc.hold(state)  # the last response's contacts, projected once (no detection)
         reach = self.self_motion * sc.thickness
-        wp.launch(span_step_kernel, len(start), [state.x, start, reach * reach, int(last),
-                                                 steps, flag], device=d)
+        wp.launch(span_step_kernel, len(start), [state.x, state.v, sc.acc, sc.cnt, start,
+                                                 reach * reach, int(last), steps, flag],
+                  device=d)
         wp.capture_if(flag, self._span_resolve, state=state, dt=dt)
 
     def _span_resolve(self, state, dt):
