@@ -170,8 +170,8 @@ def zone_move_kernel(rec: ContactRecord, member: wp.array(dtype=int), label: wp.
                      zinert: wp.array(dtype=wp.mat33), zpinned: wp.array(dtype=int),
                      inv_dt: float, steps: wp.array(dtype=int), counters: wp.array(dtype=int),
                      slot: int):
-    """Each free zone member to its zone's rigid end position,
-    ``v = (x - x0) / (steps[0] dt)`` (the path's mean velocity); the zones (roots) and moved vertices counted. Nothing when the
+    """Each free zone member to its zone's rigid end position, ``v = (x - x0) / (steps[0] dt)``
+    (the path's mean velocity); the zones (roots) and moved vertices counted. Nothing when the
     record is empty (the zones are already rigid: no new contact merged into them)."""
     i = wp.tid()
     if member[i] == 0 or rec.count[0] == 0:

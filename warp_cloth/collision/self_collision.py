@@ -261,7 +261,7 @@ def inelastic_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3
     accumulators. For a resting contact over one step this is ``v += d / dt`` (the step's fall
     is both the approach and the correction). Where the correction is larger than the
     approach (a pair already closer than the thickness, or a path that entered the thickness
-    and was leaving again at the end of a span of steps, `CollisionStage.plan`), ``v += d /
+    and was leaving again at the end of a span of steps, `SelfCollision.plan`), ``v += d /
     dt`` made a separation speed out of the overlap: measured, a 1 mm correction over one
     step kicked the folded sheet to 5 m/s."""
     inelastic_apply(wp.tid(), x, v, acc, cnt)
@@ -270,7 +270,8 @@ def inelastic_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3
 @wp.kernel
 def span_begin_kernel(x: wp.array(dtype=wp.vec3), start: wp.array(dtype=wp.vec3),
                       steps: wp.array(dtype=int), flag: wp.array(dtype=int)):
-    """A self-collision span (`CollisionStage.plan`) starts at ``x``: no step taken, no response due."""
+    """A self-collision span (`SelfCollision.plan`) starts at ``x``: no step taken, no response
+    due."""
     i = wp.tid()
     start[i] = x[i]
     if i == 0:
@@ -387,6 +388,12 @@ class SelfCollision:
         self._npairs = wp.zeros(1, dtype=int, device=d)
         self._one = wp.ones(1, dtype=int, device=d)
         self._held = wp.zeros(1, dtype=int, device=d)  # `hold`'s violation count (unused)
+        # spans (`plan`): steps per frame (None: a response after every step), steps of the
+        # frame taken, and on the device the span's start positions, steps and "respond" flag
+        self.frame_steps = None
+        self._k = 0
+        self._span = None
+        self._reach2 = 0.0
 
     def detect(self, x0, x1, gap: float, record, done=None) -> None:
         """Self-contacts on the paths ``x0 -> x1`` that come within ``gap`` appended to
@@ -433,6 +440,56 @@ class SelfCollision:
                 wp.launch(self_ee_bvh_kernel, b.num_edges,
                           [b.edge_bvh.id, *common, b.edges, gap, self.thickness, m.inv_mass,
                            done, record, ee_pairs, npairs], device=d)
+
+    # ------------------------------------------------------------------ spans
+    def plan(self, substeps: int, motion: float) -> None:
+        """Frames of ``substeps`` solver steps: the response runs once a span of steps has
+        moved some vertex more than ``motion`` thicknesses since the last response, and always
+        on a frame's last step (`CollisionStage`'s ``self_motion``); ``motion`` 0 or one step a
+        frame: after every step. The decision is on the device (`wp.capture_if` on a flag that
+        `span_step_kernel` sets), so a recorded frame graph stays valid; the frame's end is
+        counted on the host, which is why the runner must step whole frames (it does)."""
+        self._k = 0
+        if motion <= 0 or substeps <= 1:
+            self.frame_steps = None
+            return
+        self.frame_steps = int(substeps)
+        self._reach2 = (float(motion) * self.thickness) ** 2
+        if self._span is None:
+            d, n = self.device, self.model.num_vertices
+            self._span = (wp.zeros(n, dtype=wp.vec3, device=d),  # start positions
+                          wp.zeros(1, dtype=int, device=d),  # steps in the span
+                          wp.zeros(1, dtype=int, device=d))  # respond now
+
+    def restart_span(self) -> None:
+        """The next step starts a frame."""
+        self._k = 0
+
+    def step(self, state, x_start, dt: float) -> None:
+        """Self-collision after one solver step: `resolve` every step, or once per span
+        (`plan`), with the last response's contacts held in between (`hold`)."""
+        if self.frame_steps is None:
+            self.resolve(state, x_start, dt)
+            return
+        start, steps, flag = self._span
+        d = self.device
+        if self._k == 0:  # a frame starts a span (the previous frame ended with a response)
+            wp.launch(span_begin_kernel, len(start), [x_start, start, steps, flag], device=d)
+        self._k += 1
+        last = self._k == self.frame_steps
+        if last:
+            self._k = 0
+        self.hold(state)
+        wp.launch(span_step_kernel, len(start), [state.x, state.v, self.acc, self.cnt, start,
+                                                 self._reach2, int(last), steps, flag],
+                  device=d)
+        wp.capture_if(flag, self._span_resolve, state=state, dt=dt)
+
+    def _span_resolve(self, state, dt):
+        start, steps, flag = self._span
+        self.resolve(state, start, dt, steps)
+        wp.launch(span_begin_kernel, len(start), [state.x, start, steps, flag],
+                  device=self.device)
 
     def hold(self, state) -> None:
         """One Jacobi projection of the contacts the last `resolve` found (no detection), into

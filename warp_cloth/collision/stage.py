@@ -155,11 +155,6 @@ class CollisionStage:
         self.contact = contact
         self.solve_margin = solve_margin
         self.self_motion = self_motion
-        # self-collision spans (`plan`): steps per frame (None: no spans), steps of the frame
-        # taken, and on the device the span's start positions, its steps and the "respond" flag
-        self.frame_steps = None
-        self._k = 0
-        self._span = None
         self.self_in_solve = bool(self_in_solve)
         # cloth edges and triangles against the meshes' sharp features (none: no cost)
         from .features import FeatureContact
@@ -199,59 +194,17 @@ class CollisionStage:
     # ------------------------------------------------------------------ spans
     def plan(self, substeps: int) -> None:
         """Frames of ``substeps`` solver steps (the scene runner calls this): self-collision's
-        response then runs once per span of steps (``self_motion``), and always on the last
-        step of a frame. The decision is on the device (`wp.capture_if` on a flag that a
-        kernel sets when a vertex has moved far enough since the span's start), so a recorded
-        frame graph stays valid; the frame's end is counted on the host, which is why the
-        runner must step whole frames (it does)."""
+        response then runs once per span of steps (``self_motion``; `SelfCollision.plan`)."""
         substeps = int(substeps)
         if substeps < 1:
             raise ValueError(f"substeps must be >= 1, got {substeps}")
-        self._k = 0
-        if self.self_collision is None or self.self_motion <= 0 or substeps == 1:
-            self.frame_steps = None
-            return
-        self.frame_steps = substeps
-        if self._span is None:
-            d, n = self.device, self.model.num_vertices
-            self._span = (wp.zeros(n, dtype=wp.vec3, device=d),  # start positions
-                          wp.zeros(1, dtype=int, device=d),  # steps in the span
-                          wp.zeros(1, dtype=int, device=d))  # respond now
+        if self.self_collision is not None:
+            self.self_collision.plan(substeps, self.self_motion)
 
     def restart_span(self) -> None:
         """The next step starts a frame (the runner calls this at the start of a run)."""
-        self._k = 0
-
-    def _self_step(self, state, x_start, dt):
-        """Self-collision after one solver step: every step, or once per span (`plan`)."""
-        sc = self.self_collision
-        if self.frame_steps is None:
-            sc.resolve(state, x_start, dt)
-            return
-        from .self_collision import span_begin_kernel, span_step_kernel
-
-        start, steps, flag = self._span
-        d = self.device
-        if self._k == 0:  # a frame starts a span (the previous frame ended with a response)
-            wp.launch(span_begin_kernel, len(start), [x_start, start, steps, flag], device=d)
-        self._k += 1
-        last = self._k == self.frame_steps
-        if last:
-            self._k = 0
-        sc.hold(state)  # the last response's contacts, projected once (no detection)
-        reach = self.self_motion * sc.thickness
-        wp.launch(span_step_kernel, len(start), [state.x, state.v, sc.acc, sc.cnt, start,
-                                                 reach * reach, int(last), steps, flag],
-                  device=d)
-        wp.capture_if(flag, self._span_resolve, state=state, dt=dt)
-
-    def _span_resolve(self, state, dt):
-        from .self_collision import span_begin_kernel
-
-        start, steps, flag = self._span
-        self.self_collision.resolve(state, start, dt, steps)
-        wp.launch(span_begin_kernel, len(start), [state.x, start, steps, flag],
-                  device=self.device)
+        if self.self_collision is not None:
+            self.self_collision.restart_span()
 
     # ------------------------------------------------------------------ detection
     def detect(self, x_start, x_pred, dt: float, time) -> None:
@@ -293,7 +246,7 @@ class CollisionStage:
             # the layers, so a layer resting on an obstacle can end up to about two thirds of
             # the thickness closer to it than the thickness (measured 3.3 mm of 5 on the fold);
             # never through it. Every step, or once per span (`plan`)
-            self._self_step(state, x_start, dt)
+            self.self_collision.step(state, x_start, dt)
 
     # position-based iterations
     def begin_iterations(self, x, x_start, dt: float, time=None) -> None:

@@ -128,6 +128,15 @@ class Solver:
             return c
         return None
 
+    def _outside_work(self) -> bool:
+        """Whether something outside the cloth does work on it over a step: scripted pins or a
+        moving obstacle (an energy check comparing a step's end with its start then means
+        nothing)."""
+        if getattr(self.model, "pin_path", None) is not None:
+            return True
+        obstacles = getattr(self.collision, "obstacles", None) or ()
+        return any(getattr(o, "moving", False) for o in obstacles)
+
     def step(self, state, dt: float):
         """Advance ``state`` in place by ``dt`` seconds and return it."""
         dt = check_dt(dt)

@@ -991,11 +991,7 @@ class ImplicitEuler(Solver):
     def _guard_applies(self) -> bool:
         """The energy guard compares the step's end with its start, which only means something
         when nothing outside the cloth does work on it: no scripted pins, no moving obstacle."""
-        m = self.model
-        if getattr(m, "pin_path", None) is not None:
-            return False
-        obstacles = getattr(self.collision, "obstacles", None) or ()
-        return not any(getattr(o, "moving", False) for o in obstacles)
+        return not self._outside_work()
 
     @property
     def _guard_eps(self) -> float:

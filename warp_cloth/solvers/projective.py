@@ -491,9 +491,10 @@ class ProjectiveDynamics(Solver):
             wind, which do work; a device-side loop, `wp.capture_while`: capturable). The
             energy criterion took the drape's largest one-frame rise from 8.8e-4 J to 3e-5 J
             (with the contact sag of `contact_coupling`); steps that end their iterations still
-            gaining are counted (``energy_gain_steps``) and reported. Impact is where a fixed count stops short: the
-            largest one-frame energy gain fell from 2.3e-3 to 1.2e-3 J on the table scene and
-            from 2.5e-3 to 0.9e-3 J on the drape; at rest or sliding they rarely run
+            gaining are counted (``energy_gain_steps``) and reported. By the residual alone
+            (before): the largest one-frame energy gain fell from 2.3e-3 to 1.2e-3 J on the
+            table scene and from 2.5e-3 to 0.9e-3 J on the drape; at rest or sliding they run
+            rarely
             (`warp-cloth bench contact`: within noise). 0: none. Counted in ``stats``
             (``contact_iterations``: this step's, ``contact_iterations_total``,
             ``contact_short_steps``: steps that used them all still above the residual,
@@ -769,12 +770,9 @@ class ProjectiveDynamics(Solver):
     def _energy_guard(self) -> bool:
         """Whether the contact iterations also run while the step gains energy: only when
         nothing outside the cloth does work on it (no scripted pins, no moving obstacle, no
-        explicit force such as wind)."""
-        m = self.model
-        if getattr(m, "pin_path", None) is not None or any(
-                type(t).__name__ == "WindForce" for t in m.force_terms):
-            return False
-        return not any(getattr(o, "moving", False) for o in self.collision.obstacles)
+        wind)."""
+        return not (self._outside_work() or any(type(t).__name__ == "WindForce"
+                                                for t in self.model.force_terms))
 
     def _energy(self, x, v, slot: int) -> None:
         """Kinetic, gravity and elastic energy at ``x``, ``v`` into ``_e64[slot]`` (float64
