@@ -394,6 +394,19 @@ class QuadraticBending(_QuadTerm):
             wp.launch(quadratic_diagonal_kernel, self.num_quads, [self.quads, self.w, diag],
                       device=self.device)
 
+    def scalar_entries(self):
+        """``Q``'s scalar factor (``Q = S (x) I_3``) as coordinates: ``(rows, cols, values)``,
+        float64, duplicates not summed (one 4 x 4 block per quad; empty when ``k == 0``). A
+        solver with a constant matrix folds them into its own (`projective.PDSystemOperator`)."""
+        if not (self.num_quads and self.k > 0):
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        q = self.quads_np.astype(np.int64)
+        rows = np.repeat(q, 4, axis=1).ravel()
+        cols = np.tile(q, (1, 4)).ravel()
+        w = self.weights_np
+        vals = (w[:, :, None] * w[:, None, :]).ravel()
+        return rows, cols, vals
+
     def dense_q(self) -> np.ndarray:
         """The scalar (N x N) matrix with ``Q = dense_q (x) I_3`` (tests and small meshes)."""
         n = self.model.num_vertices
