@@ -50,6 +50,14 @@ CCD_ITERATIONS = 64
 #: the counters of `SelfCollision.stats`, per step (and ``*_total``: summed over all steps)
 STAT_KEYS = ("self_contacts", "self_overflow", "self_zones", "self_zone_vertices",
              "self_fallback_all", "self_responses")
+# the counters the kernels write, by name (the order of STAT_KEYS is free)
+I_CONTACTS = wp.constant(STAT_KEYS.index("self_contacts"))
+I_OVERFLOW = wp.constant(STAT_KEYS.index("self_overflow"))
+I_RESPONSES = wp.constant(STAT_KEYS.index("self_responses"))
+I_ZONES = STAT_KEYS.index("self_zones")  # the impact zones write this slot and the next
+I_FALLBACK = STAT_KEYS.index("self_fallback_all")
+if STAT_KEYS[I_ZONES + 1] != "self_zone_vertices":  # pragma: no cover - a layout invariant
+    raise RuntimeError("STAT_KEYS: self_zone_vertices must follow self_zones")
 #: the fail-safe acts on paths that come this close (a fraction of the thickness)
 FAILSAFE_GAP = 0.05
 
@@ -312,8 +320,8 @@ def round_end_kernel(rec: ContactRecord, violated: wp.array(dtype=int), done: wp
     would find the same pairs, already apart). ``flags``: [rounds run, another round (the
     `wp.capture_while` condition), the impact-zone passes needed (`wp.capture_if`)]."""
     if done[0] == 0:
-        stats[0] = stats[0] + wp.min(rec.count[0], rec.vertex.shape[0])
-        stats[1] = stats[1] + rec.overflow[0]
+        stats[I_CONTACTS] = stats[I_CONTACTS] + wp.min(rec.count[0], rec.vertex.shape[0])
+        stats[I_OVERFLOW] = stats[I_OVERFLOW] + rec.overflow[0]
         if violated[0] == 0:
             done[0] = 1
     violated[0] = 0
@@ -331,7 +339,7 @@ def step_begin_kernel(done: wp.array(dtype=int), violated: wp.array(dtype=int),
     i = wp.tid()
     if i < counters.shape[0]:
         counters[i] = 0
-        if i == counters.shape[0] - 1:  # "self_responses": this is one
+        if i == I_RESPONSES:  # this step is one response
             counters[i] = 1
     if i == 0:
         done[0] = 0
@@ -548,11 +556,11 @@ class SelfCollision:
             self.record.count.zero_()
             self.detect(x_start, state.x, gap, self.record, self.done)
             self.zones.merge(self.record, self.threads)
-            self.zones.move(self.record, x_start, state, dt, self.counters, 2, steps)
+            self.zones.move(self.record, x_start, state, dt, self.counters, I_ZONES, steps)
         self.record.count.zero_()
         self.detect(x_start, state.x, gap, self.record, self.done)
         wp.launch(revert_kernel, self.threads,
-                  [self.record, state.x, state.v, x_start, m.inv_mass, self.counters, 4,
+                  [self.record, state.x, state.v, x_start, m.inv_mass, self.counters, I_FALLBACK,
                    self.threads], device=d)
 
     def frame_end(self) -> list:
