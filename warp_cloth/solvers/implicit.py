@@ -317,13 +317,15 @@ def newton_update_kernel(
     slot: int,
     disp: wp.array(dtype=wp.vec3),
 ):
-    """x += a dx (a = step[0]: 1, or the device line search's choice)."""
+    """x += a dx (a = step[0]: 1, or the device line search's choice); the largest move into
+    ``dx_max[slot]`` (``slot < 0``: not recorded, the move to the initial guess)."""
     i = wp.tid()
     if free[i] > 0.0:
         d = step[0] * dx[i]
         x[i] = x[i] + d
         disp[i] = disp[i] + d
-        wp.atomic_max(dx_max, slot, wp.length(d))
+        if slot >= 0:
+            wp.atomic_max(dx_max, slot, wp.length(d))
 
 
 @wp.kernel
@@ -496,7 +498,7 @@ def guess_direction_kernel(v: wp.array(dtype=wp.vec3), disp: wp.array(dtype=wp.v
 
 @wp.kernel
 def guess_select_kernel(energy: wp.array(dtype=wp.float64), steps: wp.vec4,
-                        chosen: wp.array(dtype=float), record: wp.array(dtype=float)):
+                        chosen: wp.array(dtype=float)):
     """Of the initial guess (slot 0) and the candidates on the way back to ``x0`` (slots 1..),
     the one of lowest F: its step along `guess_direction_kernel`'s direction (0: the guess)."""
     best = int(-1)
@@ -509,19 +511,6 @@ def guess_select_kernel(energy: wp.array(dtype=wp.float64), steps: wp.vec4,
     if best >= 0:
         a = steps[best]
     chosen[0] = a
-    record[0] = a
-
-
-@wp.kernel
-def move_iterate_kernel(x: wp.array(dtype=wp.vec3), dx: wp.array(dtype=wp.vec3),
-                        step: wp.array(dtype=float), free: wp.array(dtype=float),
-                        disp: wp.array(dtype=wp.vec3)):
-    """``x += a dx``, ``disp += a dx`` (free vertices; ``a = step[0]``)."""
-    i = wp.tid()
-    if free[i] > 0.0:
-        d = step[0] * dx[i]
-        x[i] = x[i] + d
-        disp[i] = disp[i] + d
 
 
 @wp.kernel
@@ -801,7 +790,6 @@ class ImplicitEuler(Solver):
             self._ls_views = [self._ls_energy32[j:j + 1] for j in range(len(LS_STEPS) + 1)]
             self._ls_step = wp.ones(1, dtype=float, device=d)
             self._ls_taken = wp.zeros(self._k_total, dtype=float, device=d)
-            self._guess_taken = wp.zeros(1, dtype=float, device=d)
         # Chebyshev with rho=None measures rho on the first step (host work): the scene runner
         # captures from its second frame on, after that.
         self.capturable = (self.capturable and tolerance is None and self.linear.capturable
@@ -1099,10 +1087,9 @@ class ImplicitEuler(Solver):
         wp.launch(guess_direction_kernel, n, [v, self.disp, self.A.free, dt, self.dx], device=d)
         steps = wp.vec4(*LS_STEPS)
         self._ls_energies(x, steps)
-        wp.launch(guess_select_kernel, 1, [self._ls_energy, steps, self._ls_step,
-                                           self._guess_taken], device=d)
-        wp.launch(move_iterate_kernel, n, [x, self.dx, self._ls_step, self.A.free, self.disp],
-                  device=d)
+        wp.launch(guess_select_kernel, 1, [self._ls_energy, steps, self._ls_step], device=d)
+        wp.launch(newton_update_kernel, n,
+                  [x, self.dx, self._ls_step, self.A.free, self.dx_max, -1, self.disp], device=d)
 
     def _descend(self, x, k: int) -> bool:
         """After the inner solve's direction failed the line search: the preconditioned
