@@ -524,3 +524,46 @@ def test_explicit_fold_with_spans_stays_apart_and_comes_to_rest(motion):
     v = scene.state.v.numpy()
     assert np.abs(v).max() < 0.1, np.abs(v).max()
     assert scene.state.positions()[:, 1].max() < 0.1  # folded
+
+
+def test_line_search_energies_in_one_pass_equal_each_configuration_alone():
+    """Implicit Euler's line search evaluates the contact term (obstacle and self-contact
+    records) and quadratic bending at ``x`` and its four candidates in one launch each
+    (`energy_configs`); each slot must equal that configuration's energy evaluated alone."""
+    import warp as wp
+
+    from warp_cloth.solvers import implicit as imp
+
+    scene = fold(solver="implicit", res=8, frames=1, size=0.6, angle=150.0)
+    solver, m = scene.solver, scene.model
+    st = m.state()
+    dt = 1.0 / 120.0
+    for _ in range(50):  # until the layers touch: self-contacts in the solve
+        solver.step(st, dt)
+    c = solver._coupling
+    assert int(c.self_record.count.numpy()[0]) > 0 and int(c.record.count.numpy()[0]) > 0
+    rng = np.random.default_rng(3)
+    solver.dx.assign(rng.normal(scale=2e-3, size=(m.num_vertices, 3)).astype(np.float32))
+    steps = wp.vec4(*imp.LS_STEPS)
+    solver._ls_energies(st.x, steps)
+    fused = solver._ls_energy.numpy()[:len(imp.LS_STEPS) + 1].copy()
+    configs = [st.x] + [solver._ls_try[j] for j in range(len(imp.LS_STEPS))]
+    alone = []
+    for j, xc in enumerate(configs):  # the contact term and the bending term, one at a time
+        e64 = wp.zeros(1, dtype=wp.float64)
+        c.energy(xc, e64, solver._dt, 0)
+        e32 = wp.zeros(1, dtype=float)
+        for t in solver.implicit_terms:
+            t.energy(xc, e32)
+        alone.append(float(e64.numpy()[0]) + float(e32.numpy()[0]))
+    # the rest of F (inertia, springs, gravity) is evaluated the same way in both
+    solver.implicit_terms, terms = [], solver.implicit_terms
+    coupling, solver._coupling = solver._coupling, None
+    try:
+        solver._ls_energies(st.x, steps)
+        rest = solver._ls_energy.numpy()[:len(imp.LS_STEPS) + 1].copy()
+    finally:
+        solver.implicit_terms, solver._coupling = terms, coupling
+    contact_and_bending = fused - rest
+    assert len(set(np.round(alone, 12))) == len(alone)  # the candidates differ
+    assert np.allclose(contact_and_bending, alone, rtol=1e-6, atol=1e-12)

@@ -313,6 +313,29 @@ def quadratic_energy_kernel(
 
 
 @wp.kernel
+def quadratic_energy_configs_kernel(
+    x: wp.array(dtype=wp.vec3),
+    x_try: wp.array2d(dtype=wp.vec3),
+    quads: wp.array2d(dtype=wp.int32),
+    w: wp.array(dtype=wp.vec4),
+    out: wp.array(dtype=float),
+):
+    """`quadratic_energy_kernel` at ``x`` (into ``out[0]``) and at each row ``c`` of ``x_try``
+    (into ``out[c + 1]``) in one pass over the quads."""
+    q = wp.tid()
+    wq = w[q]
+    a = quads[q, 0]
+    b = quads[q, 1]
+    c = quads[q, 2]
+    d = quads[q, 3]
+    s = wq[0] * x[a] + wq[1] * x[b] + wq[2] * x[c] + wq[3] * x[d]
+    wp.atomic_add(out, 0, 0.5 * wp.dot(s, s))
+    for j in range(x_try.shape[0]):
+        s = wq[0] * x_try[j, a] + wq[1] * x_try[j, b] + wq[2] * x_try[j, c] + wq[3] * x_try[j, d]
+        wp.atomic_add(out, j + 1, 0.5 * wp.dot(s, s))
+
+
+@wp.kernel
 def quadratic_diagonal_kernel(
     quads: wp.array2d(dtype=wp.int32),
     w: wp.array(dtype=wp.vec4),
@@ -382,6 +405,13 @@ class QuadraticBending(_QuadTerm):
         if self.num_quads and self.k > 0:
             wp.launch(quadratic_energy_kernel, self.num_quads, [x, self.quads, self.w, out],
                       device=self.device)
+
+    def energy_configs(self, x, x_try, out):
+        """`energy` at ``x`` into ``out[0]`` and at each row ``j`` of ``x_try`` (a 2d array of
+        configurations) into ``out[j + 1]``: one launch (a line search's candidates)."""
+        if self.num_quads and self.k > 0:
+            wp.launch(quadratic_energy_configs_kernel, self.num_quads,
+                      [x, x_try, self.quads, self.w, out], device=self.device)
 
     def matvec_add(self, x, out):
         """``out += Q x`` (exact)."""

@@ -408,6 +408,35 @@ def contact_energy_kernel(
 
 
 @wp.kernel
+def contact_energy_configs_kernel(
+    rec: ContactRecord,
+    x: wp.array(dtype=wp.vec3),
+    x_try: wp.array2d(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    kappa_dt2: float,
+    eps: float,
+    lam: wp.array(dtype=float),
+    num_sources: int,
+    num_threads: int,
+    out: wp.array(dtype=wp.float64),
+):
+    """`contact_energy_kernel` at ``x`` (into ``out[0]``) and at each row ``c`` of ``x_try``
+    (into ``out[c + 1]``): one pass over the record for a line search's candidates."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources,
+                                         0)
+        if on:
+            wp.atomic_add(out, 0, wp.float64(E))
+        for c in range(x_try.shape[0]):
+            on, f, H, Hn, E = entry_response(rec, e, x_try[c], inv_mass, kappa_dt2, eps, lam,
+                                             num_sources, 0)
+            if on:
+                wp.atomic_add(out, c + 1, wp.float64(E))
+
+
+@wp.kernel
 def pd_contact_kernel(
     rec: ContactRecord,
     x: wp.array(dtype=wp.vec3),
@@ -647,6 +676,17 @@ class ContactCoupling:
             wp.launch(contact_energy_kernel, self.self_threads,
                       [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
                        self.self_threads, out, slot], device=self.device)
+
+    def energy_configs(self, x, x_try, out, dt: float) -> None:
+        """`energy` at ``x`` added to ``out[0]`` and at each row ``j`` of ``x_try`` to
+        ``out[j + 1]``: one launch a record (a line search's candidates)."""
+        wp.launch(contact_energy_configs_kernel, self.threads,
+                  [self.record, x, x_try, self.model.inv_mass, *self._args(dt), out],
+                  device=self.device)
+        if self.self_record is not None:
+            wp.launch(contact_energy_configs_kernel, self.self_threads,
+                      [self.self_record, x, x_try, self.model.inv_mass, *self._args(dt)[:-1],
+                       self.self_threads, out], device=self.device)
 
     def end_step(self, x, v, dt: float) -> None:
         """After the solve: the normal forces for the next step's friction, and no vertex held

@@ -1253,12 +1253,14 @@ class ImplicitEuler(Solver):
         if self.implicit_terms:
             self._ls_energy32.zero_()
             for t in self.implicit_terms:
+                if hasattr(t, "energy_configs"):  # every configuration in one launch
+                    t.energy_configs(x, self._ls_try, self._ls_energy32)
+                    continue
                 for j, xc in enumerate(configs):
                     t.energy(xc, self._ls_views[j])
             wp.launch(add_float32_kernel, len(configs), [self._ls_energy32, E], device=d)
         if self._coupling is not None and self.collision is not None:
-            for j, xc in enumerate(configs):
-                self._coupling.energy(xc, E, self._dt, j)
+            self._coupling.energy_configs(x, self._ls_try, E, self._dt)
 
     def describe(self) -> str:
         it = f"{self.newton_iterations} Newton"
