@@ -1049,7 +1049,7 @@ class ImplicitEuler(Solver):
                   [x, self.x_prev, m.inv_mass, 1.0 / dt, math.exp(-m.damping * dt), state.v,
                    self.f_ext, self.disp], device=d)
         if coupling is not None:
-            coupling.end_step(x, state.v, dt)
+            coupling.end_step(x, state.v, dt, state.time)
         self._stats = {"newton_iterations": done, "inner_iterations": inner,
                        "residual": residual,
                        "converged": bool(check and residual < tol), "linear_residual": info["residual"],

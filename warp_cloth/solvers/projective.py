@@ -789,7 +789,7 @@ class ProjectiveDynamics(Solver):
             wp.capture_while(self._more_flag, self._contact_iteration, state=state, dt=dt, cc=cc,
                              guard=guard)
         if cc is not None:
-            cc.end_step(state.x, state.v, dt)
+            cc.end_step(state.x, state.v, dt, state.time)
         self._stepped = True
 
     def _energy_guard(self) -> bool:
