@@ -33,7 +33,8 @@ as in Incremental Potential Contact (Li et al. 2020): the smoothed Coulomb poten
 motion), with ``f0' = f1``, ``f1(y) = 2y/eps - y^2/eps^2`` below ``eps = friction_velocity * dt``
 and 1 above it (a static branch that is a stiff spring, a sliding branch that is a constant
 force), and the normal force ``lam`` fixed for the step: the larger of the last step's final
-``k_c |g|`` and ``m |g| / dt^2`` at the prediction (the force that stops the predicted
+``k_c |g|`` (bounded by the load the other forces press the vertex on with:
+`normal_force_kernel`) and ``m |g| / dt^2`` at the prediction (the force that stops the predicted
 penetration within the step: a vertex's weight when it rests, the impact when it arrives). With
 ``lam`` fixed the potential is convex and Newton's line search applies. Its Hessian is exact in
 both branches (none along ``u`` while sliding). Newton's model of static friction is very stiff,
@@ -58,7 +59,13 @@ the thickness, and the impulse for vertices the solve did not hold).
 Limitation (measured, ``warp-cloth run table --solver pd``): projective dynamics at its default
 10 iterations per step does not propagate sliding through a cloth held by static friction over
 a large area: the table scene's sheet (mu_T = 0.15, 55 % overhanging) stays on the table, where
-explicit, position-based and implicit Euler let it slide off.
+explicit, position-based and implicit Euler let it slide off (implicit Euler only since the
+normal force is bounded by the load). Measured: not the normal force (bounded, PD still holds
+it) but the projective friction spring ``k_c (I - n n^T)``, 1000 times the inertia block: the
+global step pins a sliding vertex near its current iterate. A spring of ``m / dt^2`` lets the
+sheet slide off as under explicit Euler, but a vertex held below the friction angle then creeps
+``f dt / m`` per second (18 mm in 0.3 s on the incline test, against 0.1 mm allowed); the
+secant weight ``mu lam / |u|`` on the sliding branch alone left it on the table. Not solved.
 
 **Sag.** A penalty gives under load: a vertex pressed against a surface by the cloth's tension
 (the table's sides, held by the draped part) ends its solve about ``load dt^2 / (kappa m)``
