@@ -396,19 +396,18 @@ def _energy64(model, st):
 def test_pd_on_the_table_gains_no_energy_from_contact():
     """The table scene (16 x 16, 90 frames, static obstacles: nothing does work on the cloth)
     under PD: the largest one-frame energy rise (float64 on the host) stays under 1e-4 J (the
-    energy guard's tolerance is 1e-5 M |g| x 1 m a step). Both parts are needed, and each
-    test below fails without one: the contact iterations go on while the step gains energy
-    (without: 1.7e-3 J), and a loaded contact's next target is raised by its last sag, so the
-    response after the solve does not push it out against the springs every step (without:
-    1.7e-4 J)."""
+    energy guard's tolerance is 1e-5 M |g| x 1 m a step). The contact iterations must go on
+    while the step gains energy (without: > 1e-3 J). The contact sag (a loaded contact's next
+    target raised by its last sag) was needed too (without it 1.7e-4 J), until friction's
+    normal force was bounded by the load and PD's sliding contacts got a weak friction spring:
+    since then this scene's rise is 4.3e-5 J with the sag and 2.7e-5 J without it (the drape
+    at 16x16: 4.1e-5 / 7.0e-5 J), so no assertion on the sag is left here."""
     from warp_cloth.contact_scenes import table
 
-    def rise(guard=True, sag=True):
+    def rise(guard=True):
         scene = table(solver="pd", res=16, frames=90)
         if not guard:
             scene.solver._energy_guard = lambda: False
-        if not sag:
-            scene.solver._contact().sag_cap = 0.0
         E = []
         scene.run(None, quiet=True, on_frame=lambda f, st: E.append(_energy64(scene.model, st)))
         return float(np.diff(E).max()), scene.solver.stats
@@ -417,19 +416,19 @@ def test_pd_on_the_table_gains_no_energy_from_contact():
     assert both < 1e-4, both
     assert st["energy_gain_steps"] == 0 and st["contact_iterations_total"] > 0
     assert rise(guard=False)[0] > 1e-3
-    assert rise(sag=False)[0] > 1e-4
 
 
 def test_pd_contact_iterations_run_on_impact_and_are_counted(capsys):
     """With a collision stage, PD adds iterations while its residual is above
     ``contact_residual`` (device-side loop); they are counted, and steps that use them all are
-    reported on stderr by the runner. ``contact_iterations=0`` adds none."""
+    reported on stderr by the runner. ``contact_iterations=0`` adds none. (Residual 0.01: at
+    0.03, since PD's sliding contacts got a weak friction spring, 3 iterations were enough.)"""
     from warp_cloth.contact_scenes import table
 
     out = {}
     for ci in (3, 0):
         scene = table(solver="pd", res=8, frames=40,
-                      solver_options=dict(contact_iterations=ci, contact_residual=0.03))
+                      solver_options=dict(contact_iterations=ci, contact_residual=0.01))
         scene.run(None, progress=False)
         out[ci] = scene.solver.stats
         out[ci, "err"] = capsys.readouterr().err

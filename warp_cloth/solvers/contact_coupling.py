@@ -56,16 +56,21 @@ The record is filled once per step by `CollisionStage.detect` from the predicted
 stage's ``resolve`` after the solve stays as the final guarantee (continuous test, projection to
 the thickness, and the impulse for vertices the solve did not hold).
 
-Limitation (measured, ``warp-cloth run table --solver pd``): projective dynamics at its default
-10 iterations per step does not propagate sliding through a cloth held by static friction over
-a large area: the table scene's sheet (mu_T = 0.15, 55 % overhanging) stays on the table, where
-explicit, position-based and implicit Euler let it slide off (implicit Euler only since the
-normal force is bounded by the load). Measured: not the normal force (bounded, PD still holds
-it) but the projective friction spring ``k_c (I - n n^T)``, 1000 times the inertia block: the
-global step pins a sliding vertex near its current iterate. A spring of ``m / dt^2`` lets the
-sheet slide off as under explicit Euler, but a vertex held below the friction angle then creeps
-about ``f dt / m`` (measured on the incline test: 6.0 mm in 0.3 s, against 0.1 mm allowed); the
-secant weight ``mu lam / |u|`` on the sliding branch alone left it on the table. Not solved.
+Projective dynamics and sliding (measured, ``warp-cloth run table --solver pd``): the projective
+friction spring ``k_c (I - n n^T)`` is 1000 times a vertex's inertia block, so the global step
+pins a vertex near its current iterate, and at its default iterations PD did not let a sheet held
+by static friction over a large area slide (the table's sheet, mu_T = 0.15, 55 % overhanging,
+stayed on the table, also with the normal force bounded by the load). A spring of one inertia
+block everywhere lets it slide, but then a vertex held below the friction angle creeps about
+``f dt / m`` (measured on the incline test: 6.0 mm in 0.3 s, against 0.1 mm allowed); the secant
+weight ``mu lam / |u|`` on the sliding branch alone left it on the table. So the step's friction
+guess also classifies each entry (`friction_guess_kernel` with ``f_class``): a vertex that its
+predicted motion and the other forces at the end of the last step (the cloth's tension, less
+the weight the prediction already holds) drive past ``mu lam`` gets a friction spring of the
+inertia block for the step (``slide``, `pd_local`); the others keep the stiff one. The default
+32x32 table sheet then slides off as under explicit Euler (off the edge by frame ~60); coarser
+sheets (8, 12, 16 cells) still stay: the tension reaches too few vertices past the cap. Not
+solved there.
 
 **Sag.** A penalty gives under load: a vertex pressed against a surface by the cloth's tension
 (the table's sides, held by the draped part) ends its solve about ``load dt^2 / (kappa m)``
@@ -75,6 +80,10 @@ the table under PD). `end_step` keeps each (vertex, obstacle) pair's sag below i
 most `SAG_CAP` of the thickness) and the next `detect` raises that pair's target by it, so a
 steadily loaded contact ends its solve at the thickness (the augmented-Lagrangian idea with the
 last step's multiplier); a pair without an entry has no sag.
+Measured again after the normal force was bounded by the load and PD's sliding contacts got the
+weak friction spring (PD, 16x16, 90 frames, largest one-frame rise): table 4.3e-5 J with the sag
+and 2.7e-5 J without, drape 4.1e-5 / 7.0e-5 J, 32x32 table none either way: it no longer
+decides these scenes' energy; kept, as it still lowers the drape's.
 """
 
 from __future__ import annotations
@@ -123,7 +132,7 @@ def entry_gap(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
 @wp.func
 def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
                    inv_mass: wp.array(dtype=float), kappa_dt2: float, eps: float,
-                   lam: wp.array(dtype=float), num_sources: int, projective: int):
+                   lam: wp.array(dtype=float), num_sources: int, projective: float):
     """Entry ``e`` at ``x``: (active, force on the weighted point ``sum w_j x_j``, its 3x3
     Hessian block, the normal penalty's part of that block, energy). Normal: the penalty where
     ``g < 0``; tangential (vertex-obstacle
@@ -156,12 +165,12 @@ def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
     if mu > 0.0 and rec.kind[e] == KIND_VERTEX_OBSTACLE:
         i = rec.vertex[e][0]
         lam_i = lam[i * num_sources + rec.source[e]]
-        if lam_i > 0.0 and projective != 0:
+        if lam_i > 0.0 and projective > 0.0:
             on = True
             d = x[i] - rec.ref[e]
             u = d - wp.dot(d, n) * n
             y = wp.length(u)
-            kt = kappa_dt2 / im
+            kt = projective * kappa_dt2 / im
             reach = mu * lam_i / kt
             c = kt
             if y <= reach:
@@ -288,7 +297,7 @@ def newton_contact_kernel(
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
         on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources,
-                                         0)
+                                         0.0)
         if on_out.shape[0] > 0:
             on_out[e] = int(on)
         if on:
@@ -354,6 +363,9 @@ def friction_guess_kernel(
     f_drive: wp.array(dtype=wp.vec3),
     num_threads: int,
     disp: wp.array(dtype=wp.vec3),
+    f_class: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    slide: wp.array(dtype=int),
 ):
     """Friction's normal force for the step, and the initial guess of a vertex that friction
     can hold this step. The force: the larger of the last step's and ``m |g| / dt^2`` at the
@@ -369,6 +381,8 @@ def friction_guess_kernel(
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
+        if slide.shape[0] > 0:
+            slide[e] = 0
         mu = rec.friction[e]
         if rec.kind[e] != KIND_VERTEX_OBSTACLE or mu <= 0.0:
             continue
@@ -394,6 +408,14 @@ def friction_guess_kernel(
         # the others at their predictions: inertia of the predicted sliding plus the rest
         F = u / (dt2 * w) + f_drive[i]
         F = F - wp.dot(F, n) * n
+        if slide.shape[0] > 0:
+            # with ``f_class`` (the other forces at the end of the last step: the cloth's
+            # tension, which the prediction does not see) in place of ``f_drive``, less the
+            # weight (``f_class`` holds it, and the prediction ``u`` already fell under it)
+            Fc = u / (dt2 * w) + f_class[i] - gravity / w
+            Fc = Fc - wp.dot(Fc, n) * n
+            if wp.length(Fc) > mu * lam_i:
+                slide[e] = 1
         target = wp.vec3(0.0)  # sticks
         if wp.length(F) > mu * lam_i:
             # slides: its prediction, slowed by what the full friction force cancels in a step
@@ -424,7 +446,7 @@ def contact_energy_kernel(
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
         on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources,
-                                         0)
+                                         0.0)
         if on:
             wp.atomic_add(out, slot, wp.float64(E))
 
@@ -448,12 +470,12 @@ def contact_energy_configs_kernel(
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
         on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources,
-                                         0)
+                                         0.0)
         if on:
             wp.atomic_add(out, 0, wp.float64(E))
         for c in range(x_try.shape[0]):
             on, f, H, Hn, E = entry_response(rec, e, x_try[c], inv_mass, kappa_dt2, eps, lam,
-                                             num_sources, 0)
+                                             num_sources, 0.0)
             if on:
                 wp.atomic_add(out, c + 1, wp.float64(E))
 
@@ -473,16 +495,24 @@ def pd_contact_kernel(
     objective: wp.array(dtype=wp.float64),
     slot: int,
     on_out: wp.array(dtype=int),
+    slide: wp.array(dtype=int),
+    slide_weight: float,
 ):
     """Local step of the contact constraints: the projection onto ``g >= 0`` gives the force
     ``-k_c min(g, 0) w_j n`` (and friction); the blocks ``w_j^2 H`` into ``vblock`` for this
     iteration's global matrix; ``E_c`` into the objective; with an ``on_out`` array, each
-    entry's activity (`self_matvec_kernel`)."""
+    entry's activity (`self_matvec_kernel`). An entry marked in ``slide`` (the step's
+    friction guess found its vertex driven past static friction) has a friction spring of
+    ``slide_weight`` times ``k_c``: the inertia block, not 1000 times it (module doc)."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
+        weight = float(1.0)
+        if slide.shape[0] > 0:
+            if slide[e] != 0:
+                weight = slide_weight
         on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources,
-                                         1)
+                                         weight)
         if on_out.shape[0] > 0:
             on_out[e] = int(on)
         if on:
@@ -581,6 +611,11 @@ class ContactCoupling:
         has_obstacles = getattr(stage, "contact", None) is not None
         self.sag_cap = SAG_CAP * stage.thickness if has_obstacles else 0.0
         self._no_flags = wp.zeros(0, dtype=int, device=self.device)
+        self._no_vec = wp.zeros(0, dtype=wp.vec3, device=self.device)
+        # per entry of the obstacle record: driven past static friction this step (PD)
+        self.slide = wp.zeros(max(int(stage.record.vertex.shape[0]), 1), dtype=int,
+                              device=self.device)
+        self._classified = False  # `friction_guess` wrote `slide` for this step
         # self-contacts inside the solve (stage.self_in_solve): their own record, each entry's
         # activity at the last assembly, and the off-diagonal Hessian as an operator term
         sc = getattr(stage, "self_collision", None)
@@ -682,13 +717,18 @@ class ContactCoupling:
     def add_diagonal(self, diag) -> None:  # its diagonal blocks are added by `add_newton`
         pass
 
-    def friction_guess(self, x, disp, dt: float, f_drive) -> None:
+    def friction_guess(self, x, disp, dt: float, f_drive, classify: bool = False) -> None:
         """Friction's normal force for the step and the initial guess of the vertices it acts
         on (`friction_guess_kernel`; ``f_drive``: the forces other than contact at ``x``, the
-        prediction); ``disp`` (which tracks ``x - x_hat``) is updated the same."""
+        prediction); ``disp`` (which tracks ``x - x_hat``) is updated the same. ``classify``
+        (projective dynamics): also mark the entries whose vertex the other forces at the end
+        of the last step drive past static friction (`slide`, read by `pd_local`)."""
         wp.launch(friction_guess_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, self.lam, self.sources, dt * dt,
-                   f_drive, self.threads, disp], device=self.device)
+                   f_drive, self.threads, disp, self.f_other if classify else self._no_vec,
+                   wp.vec3(*self.model.gravity), self.slide if classify else self._no_flags],
+                  device=self.device)
+        self._classified = bool(classify)
 
     def energy(self, x, out, dt: float, slot: int = 0) -> None:
         """``E_c(x)`` added to ``out[slot]`` (a float64 array)."""
@@ -742,13 +782,15 @@ class ContactCoupling:
         self.vblock.zero_()
         wp.launch(pd_contact_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, *self._args(dt), f, self.vblock,
-                   objective, slot, self._no_flags], device=self.device)
+                   objective, slot, self._no_flags,
+                   self.slide if self._classified else self._no_flags,
+                   1.0 / self.kappa], device=self.device)
         if self.self_record is not None:
             self._dt = dt
             wp.launch(pd_contact_kernel, self.self_threads,
                       [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
-                       self.self_threads, f, self.vblock, objective, slot, self.self_on],
-                      device=self.device)
+                       self.self_threads, f, self.vblock, objective, slot, self.self_on,
+                       self._no_flags, 1.0], device=self.device)
 
     def invert_diagonal(self, blocks, free, dinv) -> None:
         """``dinv = (blocks + vblock)^-1`` (the global matrix's diagonal with contact)."""

@@ -745,7 +745,7 @@ class ProjectiveDynamics(Solver):
             cc.detect(self.x0, state.x, dt, state.time)
             # friction's guess from inertia alone (self.f is zero here; dx is scratch): with the
             # spring forces of an under-converged step in it, sliding cloth measured 20 % slow
-            cc.friction_guess(state.x, self.dx, dt, self.f)
+            cc.friction_guess(state.x, self.dx, dt, self.f, classify=True)
         self._objective.zero_()
         self._gradient.zero_()
         if self.energy_terms:
