@@ -366,10 +366,16 @@ def friction_guess_kernel(
     f_class: wp.array(dtype=wp.vec3),
     gravity: wp.vec3,
     slide: wp.array(dtype=int),
+    project: int,
 ):
     """Friction's normal force for the step, and the initial guess of a vertex that friction
     can hold this step. The force: the larger of the last step's and ``m |g| / dt^2`` at the
-    prediction. The guess: if static friction can hold the vertex where it started against the
+    prediction. With ``project``, a vertex arriving this step (no normal force from the last
+    one) whose prediction lies inside its constraint starts on the constraint's plane: Newton
+    then starts near the contact state instead of from a prediction up to ``|v| dt`` inside
+    the surface, whose penalty energy (``kappa`` times the inertia's) its first iterations
+    spent themselves undoing (the table's landing: 8.4 % one-frame strain at the box's corner
+    after 8 iterations, 4.6 % with the projection). The guess: if static friction can hold the vertex where it started against the
     inertia of its predicted sliding ``u`` (tangential part of ``x - ref``) and the other forces
     ``f_drive`` at the prediction (``|u m / dt^2 + f_drive|_T <= mu lam``), it starts from
     ``ref`` tangentially (sticking); else from its prediction, shortened by what the full
@@ -384,7 +390,7 @@ def friction_guess_kernel(
         if slide.shape[0] > 0:
             slide[e] = 0
         mu = rec.friction[e]
-        if rec.kind[e] != KIND_VERTEX_OBSTACLE or mu <= 0.0:
+        if rec.kind[e] != KIND_VERTEX_OBSTACLE:
             continue
         i = rec.vertex[e][0]
         w = inv_mass[i]
@@ -394,14 +400,20 @@ def friction_guess_kernel(
         # (the impact on the step a vertex arrives, its weight when it rests), if larger than
         # the last step's
         slot = i * num_sources + rec.source[e]
-        g = wp.dot(rec.normal[e], x[i]) - rec.offset[e]
+        n = rec.normal[e]
+        g = wp.dot(n, x[i]) - rec.offset[e]
         lam_i = lam[slot]
         if g < 0.0:
+            arriving = lam_i <= 0.0
             lam_i = wp.max(lam_i, -g / (dt2 * w))
             lam[slot] = lam_i
-        if lam_i <= 0.0:
+            if project != 0 and arriving:
+                # a vertex arriving at its surface this step starts on the constraint's plane,
+                # not inside it (``project``: implicit Euler)
+                wp.atomic_add(x, i, -g * n)
+                wp.atomic_add(disp, i, -g * n)
+        if lam_i <= 0.0 or mu <= 0.0:
             continue
-        n = rec.normal[e]
         d = x[i] - rec.ref[e]
         u = d - wp.dot(d, n) * n  # predicted sliding (inertia, gravity)
         # the tangential force friction must supply to hold the vertex where it started,
@@ -717,16 +729,19 @@ class ContactCoupling:
     def add_diagonal(self, diag) -> None:  # its diagonal blocks are added by `add_newton`
         pass
 
-    def friction_guess(self, x, disp, dt: float, f_drive, classify: bool = False) -> None:
+    def friction_guess(self, x, disp, dt: float, f_drive, classify: bool = False,
+                       project: bool = False) -> None:
         """Friction's normal force for the step and the initial guess of the vertices it acts
         on (`friction_guess_kernel`; ``f_drive``: the forces other than contact at ``x``, the
         prediction); ``disp`` (which tracks ``x - x_hat``) is updated the same. ``classify``
         (projective dynamics): also mark the entries whose vertex the other forces at the end
-        of the last step drive past static friction (`slide`, read by `pd_local`)."""
+        of the last step drive past static friction (`slide`, read by `pd_local`). ``project``
+        (Newton): a vertex arriving at its surface this step starts on its constraint's plane."""
         wp.launch(friction_guess_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, self.lam, self.sources, dt * dt,
                    f_drive, self.threads, disp, self.f_other if classify else self._no_vec,
-                   wp.vec3(*self.model.gravity), self.slide if classify else self._no_flags],
+                   wp.vec3(*self.model.gravity), self.slide if classify else self._no_flags,
+                   int(project)],
                   device=self.device)
         self._classified = bool(classify)
 

@@ -922,9 +922,10 @@ class ImplicitEuler(Solver):
             pred = state.x if self.initial_guess == "inertial" else self.x_hat
             coupling.detect(self.x_prev, pred, dt, state.time)
             # the forces at the guess without contact (b = f(x) + f_ext - M/dt^2 (x - x_hat)):
-            # friction's initial guess balances them
+            # friction's initial guess balances them; a vertex arriving at a surface starts on
+            # its contact plane (`friction_guess_kernel`)
             self._assemble(state.x, 0, hessian=False, contact=False)
-            coupling.friction_guess(state.x, self.disp, dt, self.b)
+            coupling.friction_guess(state.x, self.disp, dt, self.b, project=True)
         if self.line_search and self.initial_guess == "inertial" and coupling is None:
             # (not with contact: its friction guess balances the forces at the inertial guess,
             # and going back toward x0 from there made a sheet stick above its friction angle)
