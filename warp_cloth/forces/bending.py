@@ -302,26 +302,13 @@ def quadratic_apply_kernel(
 @wp.kernel
 def quadratic_energy_kernel(
     x: wp.array(dtype=wp.vec3),
-    quads: wp.array2d(dtype=wp.int32),
-    w: wp.array(dtype=wp.vec4),
-    out: wp.array(dtype=float),
-):
-    q = wp.tid()
-    wq = w[q]
-    s = wq[0] * x[quads[q, 0]] + wq[1] * x[quads[q, 1]] + wq[2] * x[quads[q, 2]] + wq[3] * x[quads[q, 3]]
-    wp.atomic_add(out, 0, 0.5 * wp.dot(s, s))
-
-
-@wp.kernel
-def quadratic_energy_configs_kernel(
-    x: wp.array(dtype=wp.vec3),
     x_try: wp.array2d(dtype=wp.vec3),
     quads: wp.array2d(dtype=wp.int32),
     w: wp.array(dtype=wp.vec4),
     out: wp.array(dtype=float),
 ):
-    """`quadratic_energy_kernel` at ``x`` (into ``out[0]``) and at each row ``c`` of ``x_try``
-    (into ``out[c + 1]``) in one pass over the quads."""
+    """The energy at ``x`` into ``out[0]`` and at each row ``j`` of ``x_try`` (none: an empty
+    array) into ``out[j + 1]``, in one pass over the quads (a line search's candidates)."""
     q = wp.tid()
     wq = w[q]
     a = quads[q, 0]
@@ -376,6 +363,7 @@ class QuadraticBending(_QuadTerm):
 
     def __init__(self, model, k):
         super().__init__(model, k)
+        self._no_configs = wp.zeros((0, 0), dtype=wp.vec3, device=self.device)
         if self.num_quads:
             K, area = quadratic_weights(model.mesh.vertices, self.quads_np)
             theta0 = dihedral_angles(model.mesh.vertices, self.quads_np)
@@ -403,14 +391,14 @@ class QuadraticBending(_QuadTerm):
 
     def energy(self, x, out):
         if self.num_quads and self.k > 0:
-            wp.launch(quadratic_energy_kernel, self.num_quads, [x, self.quads, self.w, out],
-                      device=self.device)
+            wp.launch(quadratic_energy_kernel, self.num_quads,
+                      [x, self._no_configs, self.quads, self.w, out], device=self.device)
 
     def energy_configs(self, x, x_try, out):
         """`energy` at ``x`` into ``out[0]`` and at each row ``j`` of ``x_try`` (a 2d array of
         configurations) into ``out[j + 1]``: one launch (a line search's candidates)."""
         if self.num_quads and self.k > 0:
-            wp.launch(quadratic_energy_configs_kernel, self.num_quads,
+            wp.launch(quadratic_energy_kernel, self.num_quads,
                       [x, x_try, self.quads, self.w, out], device=self.device)
 
     def matvec_add(self, x, out):

@@ -444,6 +444,7 @@ def friction_guess_kernel(
 def contact_energy_kernel(
     rec: ContactRecord,
     x: wp.array(dtype=wp.vec3),
+    x_try: wp.array2d(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     kappa_dt2: float,
     eps: float,
@@ -453,7 +454,9 @@ def contact_energy_kernel(
     out: wp.array(dtype=wp.float64),
     slot: int,
 ):
-    """``E_c(x)`` (with the friction potential) into ``out[slot]`` (float64)."""
+    """``E_c(x)`` (with the friction potential) into ``out[slot]`` (float64), and at each row
+    ``c`` of ``x_try`` (none: an empty array) into ``out[slot + c + 1]``: one pass over the
+    record for a line search's candidates."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
@@ -461,35 +464,11 @@ def contact_energy_kernel(
                                          0.0)
         if on:
             wp.atomic_add(out, slot, wp.float64(E))
-
-
-@wp.kernel
-def contact_energy_configs_kernel(
-    rec: ContactRecord,
-    x: wp.array(dtype=wp.vec3),
-    x_try: wp.array2d(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
-    kappa_dt2: float,
-    eps: float,
-    lam: wp.array(dtype=float),
-    num_sources: int,
-    num_threads: int,
-    out: wp.array(dtype=wp.float64),
-):
-    """`contact_energy_kernel` at ``x`` (into ``out[0]``) and at each row ``c`` of ``x_try``
-    (into ``out[c + 1]``): one pass over the record for a line search's candidates."""
-    t = wp.tid()
-    count = wp.min(rec.count[0], rec.vertex.shape[0])
-    for e in range(t, count, num_threads):
-        on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources,
-                                         0.0)
-        if on:
-            wp.atomic_add(out, 0, wp.float64(E))
         for c in range(x_try.shape[0]):
             on, f, H, Hn, E = entry_response(rec, e, x_try[c], inv_mass, kappa_dt2, eps, lam,
                                              num_sources, 0.0)
             if on:
-                wp.atomic_add(out, c + 1, wp.float64(E))
+                wp.atomic_add(out, slot + c + 1, wp.float64(E))
 
 
 @wp.kernel
@@ -624,6 +603,7 @@ class ContactCoupling:
         self.sag_cap = SAG_CAP * stage.thickness if has_obstacles else 0.0
         self._no_flags = wp.zeros(0, dtype=int, device=self.device)
         self._no_vec = wp.zeros(0, dtype=wp.vec3, device=self.device)
+        self._no_configs = wp.zeros((0, 0), dtype=wp.vec3, device=self.device)
         # per entry of the obstacle record: driven past static friction this step (PD)
         self.slide = wp.zeros(max(int(stage.record.vertex.shape[0]), 1), dtype=int,
                               device=self.device)
@@ -747,24 +727,18 @@ class ContactCoupling:
 
     def energy(self, x, out, dt: float, slot: int = 0) -> None:
         """``E_c(x)`` added to ``out[slot]`` (a float64 array)."""
+        self.energy_configs(x, self._no_configs, out, dt, slot)
+
+    def energy_configs(self, x, x_try, out, dt: float, slot: int = 0) -> None:
+        """`energy` at ``x`` added to ``out[slot]`` and at each row ``j`` of ``x_try`` to
+        ``out[slot + j + 1]``: one launch a record (a line search's candidates)."""
         wp.launch(contact_energy_kernel, self.threads,
-                  [self.record, x, self.model.inv_mass, *self._args(dt), out, slot],
+                  [self.record, x, x_try, self.model.inv_mass, *self._args(dt), out, slot],
                   device=self.device)
         if self.self_record is not None:
             wp.launch(contact_energy_kernel, self.self_threads,
-                      [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
-                       self.self_threads, out, slot], device=self.device)
-
-    def energy_configs(self, x, x_try, out, dt: float) -> None:
-        """`energy` at ``x`` added to ``out[0]`` and at each row ``j`` of ``x_try`` to
-        ``out[j + 1]``: one launch a record (a line search's candidates)."""
-        wp.launch(contact_energy_configs_kernel, self.threads,
-                  [self.record, x, x_try, self.model.inv_mass, *self._args(dt), out],
-                  device=self.device)
-        if self.self_record is not None:
-            wp.launch(contact_energy_configs_kernel, self.self_threads,
                       [self.self_record, x, x_try, self.model.inv_mass, *self._args(dt)[:-1],
-                       self.self_threads, out], device=self.device)
+                       self.self_threads, out, slot], device=self.device)
 
     def end_step(self, x, v, dt: float, time=None) -> None:
         """After the solve: the normal forces for the next step's friction (bounded by the load
