@@ -37,7 +37,7 @@ from __future__ import annotations
 import warp as wp
 
 from .broadphase import ClothBroadPhase, boxes_overlap, grid_radius
-from .features import jacobi_project_kernel
+from .features import inelastic_apply, inelastic_apply_kernel, jacobi_project_kernel
 from .impact_zones import ImpactZones
 from .geometry import CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, vt_impact
 from .record import KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, make_record, record_append
@@ -241,38 +241,6 @@ def revert_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3), v: wp.array(dt
             v[i] = wp.vec3(0.0)
     if t == 0:
         stats[slot] = stats[slot] + 1
-
-
-@wp.func
-def inelastic_apply(i: int, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-                    acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int)):
-    """`inelastic_apply_kernel` for vertex ``i``."""
-    c = cnt[i]
-    if c > 0:
-        d = acc[i] / float(c)
-        x[i] = x[i] + d
-        l = wp.length(d)
-        if l > 0.0:
-            u = d / l
-            a = wp.dot(v[i], u)
-            if a < 0.0:
-                v[i] = v[i] - a * u
-        acc[i] = wp.vec3(0.0)
-        cnt[i] = 0
-
-
-@wp.kernel
-def inelastic_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-                           acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int)):
-    """``x += d`` (``d = acc / cnt``, the Jacobi average) and the velocity loses the component
-    that approached along ``d``: ``v += max(-v . d^, 0) d^`` (inelastic); clears the
-    accumulators. For a resting contact over one step this is ``v += d / dt`` (the step's fall
-    is both the approach and the correction). Where the correction is larger than the
-    approach (a pair already closer than the thickness, or a path that entered the thickness
-    and was leaving again at the end of a span of steps, `SelfCollision.plan`), ``v += d /
-    dt`` made a separation speed out of the overlap: measured, a 1 mm correction over one
-    step kicked the folded sheet to 5 m/s."""
-    inelastic_apply(wp.tid(), x, v, acc, cnt)
 
 
 @wp.kernel
