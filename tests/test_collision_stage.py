@@ -474,6 +474,30 @@ def test_feature_response_makes_no_separation_speed_out_of_overlap(thin_small):
     assert np.abs(st.v.numpy()).max() < 1e-6, st.v.numpy()[:2]
 
 
+def test_pd_energy_check_runs_while_the_moving_obstacle_rests():
+    """The ``mesh`` scene's torus rests for 0.8 s, then moves. PD's contact iterations also
+    run while a step gains energy, but only where nothing outside the cloth does work: that
+    was decided once for the scene (a moving obstacle: never), so PD's landing on the resting
+    torus gained 1.6e-2 J in a frame. The obstacle poses now say on the device whether any
+    obstacle moved in the step (`ObstacleContact.still`)."""
+    from warp_cloth.collision import KeyframePath, MeshObstacle, Motion
+    from warp_cloth.contact_scenes import asset_path, mesh
+    from warp_cloth.diagnostics import Meter
+
+    path = KeyframePath(times=[0.0, 0.5, 1.0], offsets=[[0, 0, 0], [0, 0, 0], [0.2, 0, 0]])
+    ob = MeshObstacle(asset_path("torus.obj"), motion=Motion(path=path))
+    contact = ObstacleContact(sheet_model(res=2), [ob])
+    for t, still in ((0.0, 1), (0.49, 1), (0.6, 0)):
+        contact._poses(wp.array([t], dtype=wp.float64), 0.01, 0)
+        assert int(contact.still.numpy()[0]) == still, t
+
+    scene = mesh(solver="pd", frames=20)
+    meter = Meter(scene.model)
+    E = []
+    scene.run(None, quiet=True, on_frame=lambda f, s: E.append(meter(s, energy=True).energy))
+    assert np.diff(E).max() < 1e-3, f"{np.diff(E).max():.2e} J in a frame"
+
+
 def test_pd_friction_stays_put_with_more_iterations():
     """Projective dynamics converges towards implicit Euler as its iterations grow, so more of
     them must not hurt. With friction's exact smoothed-Coulomb Hessian in PD's global matrix (very

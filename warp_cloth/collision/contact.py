@@ -244,6 +244,9 @@ class ObstacleContact:
             reaches.append(r)
         self.reaches = wp.array(reaches, dtype=ObstacleReach, device=d)
         self._last_t1 = wp.array(np.full(len(ordered), np.nan), dtype=wp.float64, device=d)
+        # 1 while no obstacle moved in the last posed step (`obstacle_poses_kernel`): a solver's
+        # energy check may then compare the step's end with its start (device-side)
+        self.still = wp.ones(1, dtype=int, device=d)
         self._analytic_reach = self.reaches[: len(self.analytic)] if self.analytic else None
         self._mesh_reach = self.reaches[len(self.analytic):] if self.meshes else None
         self._analytic_data = self._data[: len(self.analytic)] if self.analytic else None
@@ -491,9 +494,11 @@ class ObstacleContact:
         if self.moving:
             from .motion import obstacle_poses_kernel
 
+            self.still.fill_(1)
             wp.launch(obstacle_poses_kernel, len(self.obstacles),
                       [self._data, self.key_times, self.key_offsets, self.key_rotations, time,
-                       self.clock, dt, respond, self.poses, self.reaches, self._last_t1],
+                       self.clock, dt, respond, self.poses, self.reaches, self._last_t1,
+                       self.still],
                       device=self.device)
 
     def _far(self, x, x_start, respond, margin):

@@ -379,12 +379,15 @@ def obstacle_poses_kernel(
     poses: wp.array(dtype=wp.transform),
     reach: wp.array(dtype=ObstacleReach),
     last_t1: wp.array(dtype=wp.float64),
+    still: wp.array(dtype=int),
 ):
     """Poses of every obstacle at the start and end of the step, once per step (one thread per
     obstacle): ``poses[5k + 0..4] = T(t0), T(t1), T(t0)^-1, T(t1)^-1`` and the world direction
     of the local +y axis at t1 (a plane's normal) as the translation of the fifth; ``reach[k]``
     for the far test. ``advance_clock`` (``apply``) also records the step's end time, so the next
-    ``apply`` knows whether it starts where this one ended (``reach[k].fresh``)."""
+    ``apply`` knows whether it starts where this one ended (``reach[k].fresh``). ``still[0]``
+    (set to 1 before the launch) is cleared when some obstacle's pose differs between the
+    step's start and end: an obstacle that stands still this step does no work on the cloth."""
     k = wp.tid()
     ob = obstacles[k]
     t0 = time[0]
@@ -395,6 +398,13 @@ def obstacle_poses_kernel(
     T1 = obstacle_pose(ob, key_times, key_offsets, key_rotations, t1)
     poses[5 * k + 0] = T0
     poses[5 * k + 1] = T1
+    p0 = wp.transform_get_translation(T0)
+    p1 = wp.transform_get_translation(T1)
+    q0 = wp.transform_get_rotation(T0)
+    q1 = wp.transform_get_rotation(T1)
+    dq = wp.vec4(q1[0] - q0[0], q1[1] - q0[1], q1[2] - q0[2], q1[3] - q0[3])
+    if wp.length_sq(p1 - p0) + wp.length_sq(dq) > 0.0:
+        still[0] = 0
     poses[5 * k + 2] = wp.transform_inverse(T0)
     poses[5 * k + 3] = wp.transform_inverse(T1)
     poses[5 * k + 4] = wp.transform(wp.transform_vector(T1, wp.vec3(0.0, 1.0, 0.0)), wp.quat_identity())
