@@ -517,8 +517,9 @@ class ProjectiveDynamics(Solver):
             iterations after ``iterations``, run while the implicit-Euler residual
             ``max_i dt^2 |grad F_i| / m_i`` is above ``contact_residual``, or while the step's
             energy (kinetic, gravity, springs, bending; float64 sums) is above its start by
-            more than `ENERGY_EPS` ``M |g|`` x 1 m (not with scripted pins, moving obstacles or
-            wind, which do work; a device-side loop, `wp.capture_while`: capturable). The
+            more than `ENERGY_EPS` ``M |g|`` x 1 m (not with scripted pins or wind, which do
+            work, nor in a step where an obstacle moves: `ObstacleContact.still`; a device-side
+            loop, `wp.capture_while`: capturable). The
             energy criterion took the drape's largest one-frame rise from 8.8e-4 J to 3e-5 J
             (with the contact sag of `contact_coupling`); steps that end their iterations still
             gaining are counted (``energy_gain_steps``) and reported. By the residual alone
