@@ -812,7 +812,7 @@ class ImplicitEuler(Solver):
             if self._coupling is not None and self._coupling in self.A.extra:
                 self.A.extra.remove(self._coupling)
             self._coupling = ContactCoupling(self.model, self.collision, self.contact_stiffness)
-            if self._coupling.self_record is not None:
+            if self._coupling.self_record is not None or self._coupling.pairs_on is not None:
                 self.A.extra.append(self._coupling)
         self.A.vertex_blocks = self._coupling.vblock
         return self._coupling
