@@ -223,6 +223,33 @@ def test_implicit_table_landing_strain_within_explicit():
     assert worst["implicit"] <= 1.5 * worst["explicit"], worst
 
 
+def _hessian_and_jacobian(cc, force, x):
+    """The assembled contact Hessian at ``x`` (`vblock` plus the operator term `matvec_add`,
+    column by column) and the central-difference Jacobian of ``-force``."""
+    n = len(x)
+    force(x)
+    vb = cc.vblock.numpy().astype(np.float64)
+    H = np.zeros((3 * n, 3 * n))
+    for i in range(n):
+        for c in range(3):
+            e = np.zeros((n, 3), dtype=np.float32)
+            e[i, c] = 1.0
+            out = wp.zeros(n, dtype=wp.vec3, device="cpu")
+            cc.matvec_add(wp.array(e, dtype=wp.vec3, device="cpu"), out)
+            col = out.numpy().astype(np.float64).reshape(-1)
+            col[3 * i:3 * i + 3] += vb[i][:, c]
+            H[:, 3 * i + c] = col
+    J = np.zeros_like(H)
+    h = 1e-5
+    for i in range(n):
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[i, c] += h
+            xm[i, c] -= h
+            J[:, 3 * i + c] = -(force(xp) - force(xm)).reshape(-1) / (2 * h)
+    return H, J
+
+
 def test_feature_pair_entries_get_their_full_hessian_in_newton():
     """A cloth edge against a mesh's sharp feature is an entry of two cloth vertices in the
     obstacle record. Newton took only its diagonal blocks, did not converge on coarse sheets
@@ -252,26 +279,7 @@ def test_feature_pair_entries_get_their_full_hessian_in_newton():
                       wp.zeros(n, dtype=wp.mat33, device="cpu"), dt)
         return b.numpy().astype(np.float64)
 
-    force(x)
-    vb = cc.vblock.numpy().astype(np.float64)
-    H = np.zeros((3 * n, 3 * n))
-    for i in range(n):
-        for c in range(3):
-            e = np.zeros((n, 3), dtype=np.float32)
-            e[i, c] = 1.0
-            out = wp.zeros(n, dtype=wp.vec3, device="cpu")
-            cc.matvec_add(wp.array(e, dtype=wp.vec3, device="cpu"), out)
-            col = out.numpy().astype(np.float64).reshape(-1)
-            col[3 * i:3 * i + 3] += vb[i][:, c]
-            H[:, 3 * i + c] = col
-    J = np.zeros_like(H)
-    h = 1e-5
-    for i in range(n):
-        for c in range(3):
-            xp, xm = x.copy(), x.copy()
-            xp[i, c] += h
-            xm[i, c] -= h
-            J[:, 3 * i + c] = -(force(xp) - force(xm)).reshape(-1) / (2 * h)
+    H, J = _hessian_and_jacobian(cc, force, x)
     np.testing.assert_allclose(H, J, rtol=2e-2, atol=2e-3 * np.abs(J).max())
     assert np.abs(H[6:9, 15:18]).max() > 0.1 * np.abs(J).max()  # vertices 2 and 5 coupled
 
@@ -331,26 +339,7 @@ def test_self_contact_term_full_hessian_matches_finite_differences():
 
     force(x)
     assert cc.self_on.numpy().tolist() == [1, 1, 0]  # the third is 1 mm apart
-    vb = cc.vblock.numpy().astype(np.float64)
-    H = np.zeros((3 * n, 3 * n))
-    for i in range(n):
-        e = np.zeros((n, 3), dtype=np.float32)
-        for c in range(3):
-            e[:] = 0.0
-            e[i, c] = 1.0
-            out = wp.zeros(n, dtype=wp.vec3, device="cpu")
-            cc.matvec_add(wp.array(e, dtype=wp.vec3, device="cpu"), out)
-            col = out.numpy().astype(np.float64).reshape(-1)
-            col[3 * i:3 * i + 3] += vb[i][:, c]
-            H[:, 3 * i + c] = col
-    J = np.zeros_like(H)
-    h = 1e-5
-    for i in range(n):
-        for c in range(3):
-            xp, xm = x.copy(), x.copy()
-            xp[i, c] += h
-            xm[i, c] -= h
-            J[:, 3 * i + c] = -(force(xp) - force(xm)).reshape(-1) / (2 * h)
+    H, J = _hessian_and_jacobian(cc, force, x)
     J[45:48, :] = J[:, 45:48] = 0.0  # the pinned vertex 15: eliminated, as in the operator
     np.testing.assert_allclose(H, J, rtol=2e-2, atol=2e-3 * np.abs(J).max())
     assert np.abs(H[:, 3 * 3:3 * 4]).max() == 0.0  # vertex 3 only in the inactive entry
