@@ -223,6 +223,17 @@ def test_implicit_table_landing_strain_within_explicit():
     assert worst["implicit"] <= 1.5 * worst["explicit"], worst
 
 
+def _newton_force(cc, n, dt):
+    """``x -> `` the contact force `add_newton` assembles at ``x`` (float64 host array)."""
+    def force(xh):
+        b = wp.zeros(n, dtype=wp.vec3, device="cpu")
+        cc.add_newton(wp.array(xh.astype(np.float32), dtype=wp.vec3, device="cpu"), b,
+                      wp.zeros(n, dtype=wp.mat33, device="cpu"), dt)
+        return b.numpy().astype(np.float64)
+
+    return force
+
+
 def _hessian_and_jacobian(cc, force, x):
     """The assembled contact Hessian at ``x`` (`vblock` plus the operator term `matvec_add`,
     column by column) and the central-difference Jacobian of ``-force``."""
@@ -273,12 +284,7 @@ def test_feature_pair_entries_get_their_full_hessian_in_newton():
     assert cc.pairs_on is not None
     dt = 1.0 / 100.0
 
-    def force(xh):
-        b = wp.zeros(n, dtype=wp.vec3, device="cpu")
-        cc.add_newton(wp.array(xh.astype(np.float32), dtype=wp.vec3, device="cpu"), b,
-                      wp.zeros(n, dtype=wp.mat33, device="cpu"), dt)
-        return b.numpy().astype(np.float64)
-
+    force = _newton_force(cc, n, dt)
     H, J = _hessian_and_jacobian(cc, force, x)
     np.testing.assert_allclose(H, J, rtol=2e-2, atol=2e-3 * np.abs(J).max())
     assert np.abs(H[6:9, 15:18]).max() > 0.1 * np.abs(J).max()  # vertices 2 and 5 coupled
@@ -331,12 +337,7 @@ def test_self_contact_term_full_hessian_matches_finite_differences():
     cc.self_record = rec
     dt = 1.0 / 100.0
 
-    def force(xh):
-        b = wp.zeros(n, dtype=wp.vec3, device="cpu")
-        cc.add_newton(wp.array(xh.astype(np.float32), dtype=wp.vec3, device="cpu"), b,
-                      wp.zeros(n, dtype=wp.mat33, device="cpu"), dt)
-        return b.numpy().astype(np.float64)
-
+    force = _newton_force(cc, n, dt)
     force(x)
     assert cc.self_on.numpy().tolist() == [1, 1, 0]  # the third is 1 mm apart
     H, J = _hessian_and_jacobian(cc, force, x)
