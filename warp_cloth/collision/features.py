@@ -45,7 +45,8 @@ import warp as wp
 
 from .broadphase import ClothBroadPhase
 from .geometry import CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, vt_impact
-from .record import KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, record_append
+from .record import (KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, record_append,
+                     record_threads)
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
@@ -324,7 +325,7 @@ class FeatureContact:
         self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
         self.cnt = wp.zeros(n, dtype=int, device=d)
         self.violated = wp.zeros(1, dtype=int, device=d)
-        self.threads = max(1, -(-n // 16))
+        self.threads = record_threads(n, d)
 
     @property
     def capacity(self) -> int:

@@ -30,7 +30,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = ["ContactRecord", "make_record", "KIND_VERTEX_OBSTACLE", "KIND_VERTEX_TRIANGLE",
-           "KIND_EDGE_EDGE", "record_append", "planes_to_record_kernel"]
+           "KIND_EDGE_EDGE", "record_append", "planes_to_record_kernel", "record_threads"]
 
 KIND_VERTEX_OBSTACLE = 0
 KIND_VERTEX_TRIANGLE = 1
@@ -52,6 +52,16 @@ class ContactRecord:
     restitution: wp.array(dtype=float)  # mu_N
     source: wp.array(dtype=int)  # obstacle index, or -1
     kind: wp.array(dtype=int)  # KIND_*
+
+
+def record_threads(entries: int, device, batch: int = 16) -> int:
+    """Threads for a kernel that strides over up to ``entries`` record entries: one per
+    ``batch`` on a GPU; one on the CPU, whose backend runs a launch's threads one after another
+    on one core anyway (a thread that finds nothing to do still costs its call: with thousands
+    of them, more than a short record's work)."""
+    if wp.get_device(device).is_cpu:
+        return 1
+    return max(1, -(-int(entries) // int(batch)))
 
 
 def make_record(capacity: int, device) -> ContactRecord:
