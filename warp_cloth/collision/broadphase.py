@@ -65,6 +65,15 @@ def box_centres_kernel(lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=w
 
 
 @wp.kernel
+def vertex_bounds_kernel(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), pad: float,
+                         lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
+    """Swept boxes of the vertices, inflated by ``pad``."""
+    i = wp.tid()
+    lowers[i] = wp.min(x0[i], x1[i]) - wp.vec3(pad)
+    uppers[i] = wp.max(x0[i], x1[i]) + wp.vec3(pad)
+
+
+@wp.kernel
 def cloth_bounds_kernel(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                         tris: wp.array2d(dtype=wp.int32), edges: wp.array2d(dtype=wp.int32),
                         num_tris: int, pad: float, lowers: wp.array(dtype=wp.vec3),
@@ -115,7 +124,7 @@ class ClothBroadPhase:
         self.uppers = wp.zeros(len(tris), dtype=wp.vec3, device=d)
         self.elowers = wp.zeros(len(edges), dtype=wp.vec3, device=d)
         self.euppers = wp.zeros(len(edges), dtype=wp.vec3, device=d)
-        self.tri_bvh = self.edge_bvh = None
+        self.tri_bvh = self.edge_bvh = self.vertex_bvh = None
         self.tri_grid = self.edge_grid = None
         if method == "grid":
             x = np.asarray(model.mesh.vertices, dtype=np.float64)
@@ -133,11 +142,23 @@ class ClothBroadPhase:
             self.tri_grid.reserve(len(tris))
             self.edge_grid.reserve(len(edges))
 
-    def update(self, x0, x1, pad: float) -> None:
-        """Boxes of the paths ``x0 -> x1`` inflated by ``pad``, and the BVHs refitted."""
+    def update(self, x0, x1, pad: float, vertices: bool = False) -> None:
+        """Boxes of the paths ``x0 -> x1`` inflated by ``pad``, and the BVHs refitted;
+        ``vertices``: also the vertices' boxes and their BVH ``vertex_bvh`` (BVH method only)."""
         wp.launch(cloth_bounds_kernel, self.num_tris + self.num_edges,
                   [x0, x1, self.tris, self.edges, self.num_tris, float(pad), self.lowers,
                    self.uppers, self.elowers, self.euppers], device=self.device)
+        if vertices and self.method == "bvh":
+            if self.vertex_bvh is None:
+                n = len(x0)
+                self.vlowers = wp.zeros(n, dtype=wp.vec3, device=self.device)
+                self.vuppers = wp.zeros(n, dtype=wp.vec3, device=self.device)
+            wp.launch(vertex_bounds_kernel, len(x0), [x0, x1, float(pad), self.vlowers,
+                                                      self.vuppers], device=self.device)
+            if self.vertex_bvh is None:
+                self.vertex_bvh = wp.Bvh(self.vlowers, self.vuppers)
+            else:
+                self.vertex_bvh.refit()
         if self.method == "grid":
             self.rmax.zero_()
             if self.num_tris:

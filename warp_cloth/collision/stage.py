@@ -79,11 +79,13 @@ class CollisionStage:
             ``warp-cloth bench selfcollision``).
         self_motion: >= 0, a fraction of the self-collision thickness. Under the scene runner
             (`plan`), self-collision's response (detection, projection, impact zones) runs
-            once a span of solver steps has moved some vertex more than this fraction of the
-            thickness, and at the end of every frame, on the straight paths from the span's
-            start to its end, instead of after every step (default 0.25; 0: after every
-            step). Every written frame has been resolved, and no pair can come a half
-            thickness closer within a span before it is looked at. Solvers with many small
+            once a span of solver steps has moved some vertex more than its allowance, and at
+            the end of every frame, on the straight paths from the span's start to its end,
+            instead of after every step (default 0.25; 0: after every step). The allowance is
+            this fraction of the thickness near other parts of the cloth and up to 1.5
+            thicknesses where the cloth is clear of itself (`SelfCollision.clear`). Every
+            written frame has been resolved, and no pair can come a half thickness closer
+            within a span before it is looked at (nor within the thickness, if it was clear). Solvers with many small
             substeps (explicit Euler, PBD) then pay for self-collision a few times a frame
             instead of every substep: ``warp-cloth bench selfcollision``. Without `plan` (a
             solver stepped by hand) every step is resolved.
