@@ -494,18 +494,20 @@ def _span_stage(motion=0.25, gravity=(0.0, 0.0, 0.0), layers=None):
 
 def test_self_collision_spans_end_on_frames_and_follow_the_motion():
     """Under `CollisionStage.plan` the response runs once a span of steps has moved a vertex
-    ``self_motion`` thicknesses, and always on a frame's last step; each response is told
-    how many steps its path spans. Without `plan`, or with ``self_motion=0``, every step."""
+    past its allowance (frames of 8 steps or more) or ``self_motion`` thicknesses, and always
+    on a frame's last step; each response is told how many steps its path spans. Without
+    `plan`, or with ``self_motion=0``, every step."""
     model, stage, solver, calls = _span_stage()
     dt = 0.25 * solver.stable_dt(model)
     state = model.state()
-    stage.plan(5)
-    for _ in range(10):
+    stage.plan(10)
+    for _ in range(20):
         solver.step(state, dt)
-    assert calls == [5, 5]  # nothing moves: only the frames' ends
+    assert calls == [10, 10]  # nothing moves: only the frames' ends
     # the whole sheet moving 1 mm a step: clear of itself (cells of 17 cm), each vertex may
     # move its allowance, (4 - 1.01) / 2 x 5 mm = 7.5 mm, before a response -> the 8th step
     sc = stage.self_collision
+    assert sc.allowances
     assert sc.reach_max == pytest.approx(0.5 * (sc.clearance - 1.01 * sc.thickness))
     assert np.allclose(sc._allow.numpy(), 0.5 * (sc.clearance - 1.01 * sc.thickness))
     calls.clear()
@@ -515,20 +517,27 @@ def test_self_collision_spans_end_on_frames_and_follow_the_motion():
         solver.step(state, dt)
     # a new plan forgets the allowances: its first span ends at the reach (1.25 mm), then 8 steps
     assert calls == [2, 8, 8, 2], calls
+    # frames of fewer than 8 steps keep the reach everywhere: every 2nd step
+    calls.clear()
+    stage.plan(5)
+    assert not sc.allowances
+    for _ in range(5):
+        solver.step(state, dt)
+    assert calls == [2, 2, 1], calls
     # two sheets 7 mm apart (allowance (7 - 5.05) / 2 mm, below the reach of 0.25 x 5 mm),
     # the upper one sliding 1 mm a step: every 2nd step
     model, stage, solver, calls = _span_stage(layers=0.007)
     state = model.state()
-    stage.plan(5)
-    for _ in range(5):
+    stage.plan(10)
+    for _ in range(10):
         solver.step(state, dt)
     v = np.zeros((model.num_vertices, 3))
     v[model.num_vertices // 2:, 0] = 1e-3 / dt
     state.v.assign(v)
     calls.clear()
-    for _ in range(5):
+    for _ in range(10):
         solver.step(state, dt)
-    assert calls == [2, 2, 1], calls
+    assert calls == [2, 2, 2, 2, 2], calls
     # by hand (no plan) and self_motion=0: every step
     for stage_args in ({"plan": False}, {"motion": 0.0}):
         model, stage, solver, calls = _span_stage(stage_args.get("motion", 0.25))
