@@ -36,7 +36,8 @@ conditional (`SelfCollision.resolve`).
    its allowance, and at every frame's end. After each response `SelfCollision.clear` gives
    every vertex an allowance: half the least distance beyond the thickness of the non-adjacent
    pairs it belongs to (vertex-triangle and edge-edge, found within ``clearance`` thicknesses),
-   at least the ``self_motion`` reach and at most ``(clearance - 1.01) / 2`` thicknesses. A pair
+   at least the ``self_motion`` reach and at most ``(clearance - 1.01) / 2`` thicknesses (a
+   partial pass, over the pairs of the vertices that moved, when few did). A pair
    whose vertices all stay within their allowances cannot come within the thickness, so a
    cloth clear of itself runs long spans, and the span's detection skips such pairs: only the
    vertices past their allowance query the BVHs (`active_kernel`; the BVH broad phase). A
@@ -50,7 +51,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from .broadphase import ClothBroadPhase, boxes_overlap, cloth_bounds_kernel, grid_radius
+from .broadphase import (ClothBroadPhase, boxes_overlap, cloth_bounds_kernel, grid_radius,
+                         vertex_bounds_kernel)
 from .features import inelastic_apply, inelastic_apply_kernel, jacobi_project_kernel
 from .impact_zones import ImpactZones
 from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_distance, ee_impact,
@@ -78,6 +80,8 @@ if STAT_KEYS[I_ZONES + 1] != "self_zone_vertices":  # pragma: no cover - a layou
 CLEAR_SPARE = wp.constant(1.01)
 #: spans of frames with fewer steps than this keep the reach (`SelfCollision.plan`)
 ALLOWANCE_STEPS = 8
+#: `SelfCollision.clear` looks at every pair again once this fraction of the vertices moved
+CLEAR_FULL_FRACTION = 0.25
 #: the fail-safe acts on paths that come this close (a fraction of the thickness)
 FAILSAFE_GAP = 0.05
 
@@ -369,51 +373,142 @@ def clearance_share(d: float, h: float, i0: int, i1: int, i2: int, i3: int,
     wp.atomic_min(allow, i3, a)
 
 
+@wp.func
+def clearance_vt_pair(v: int, t: int, x: wp.array(dtype=wp.vec3),
+                      tris: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
+                      h: float, allow: wp.array(dtype=float)):
+    ia = tris[t, 0]
+    ib = tris[t, 1]
+    ic = tris[t, 2]
+    if ia == v or ib == v or ic == v:
+        return
+    if inv_mass[v] + inv_mass[ia] + inv_mass[ib] + inv_mass[ic] == 0.0:
+        return
+    d = float(vt_distance(d3(x[v]), d3(x[ia]), d3(x[ib]), d3(x[ic])))
+    clearance_share(d, h, v, ia, ib, ic, allow)
+
+
 @wp.kernel
 def clearance_vt_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
                         tris: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
-                        half: float, h: float, allow: wp.array(dtype=float)):
+                        half: float, h: float, moved: wp.array(dtype=int),
+                        allow: wp.array(dtype=float)):
     """Vertex ``v`` against the triangles within ``2 half`` (boxes inflated by ``half`` each):
     the allowance of the four vertices of each such pair lowered to half its distance beyond
-    ``h`` (`SelfCollision.clear`)."""
+    ``h`` (`SelfCollision.clear`). With a ``moved`` set, only the moved vertices."""
     v = wp.tid()
+    if moved.shape[0] > 0:
+        if moved[v] == 0:
+            return
     p = x[v]
     q = wp.bvh_query_aabb(bvh, p - wp.vec3(half), p + wp.vec3(half))
     t = int(0)
     while wp.bvh_query_next(q, t):
-        ia = tris[t, 0]
-        ib = tris[t, 1]
-        ic = tris[t, 2]
-        if ia == v or ib == v or ic == v:
-            continue
-        if inv_mass[v] + inv_mass[ia] + inv_mass[ib] + inv_mass[ic] == 0.0:
-            continue
-        d = float(vt_distance(d3(p), d3(x[ia]), d3(x[ib]), d3(x[ic])))
-        clearance_share(d, h, v, ia, ib, ic, allow)
+        clearance_vt_pair(v, t, x, tris, inv_mass, h, allow)
+
+
+@wp.kernel
+def clearance_tv_kernel(vbvh: wp.uint64, x: wp.array(dtype=wp.vec3),
+                        tris: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
+                        half: float, h: float, moved: wp.array(dtype=int),
+                        allow: wp.array(dtype=float)):
+    """Triangle ``t`` with a moved corner against the vertices that did not move within
+    ``2 half`` (the vertices' BVH): the pairs `clearance_vt_kernel` leaves out."""
+    t = wp.tid()
+    ia = tris[t, 0]
+    ib = tris[t, 1]
+    ic = tris[t, 2]
+    if moved[ia] + moved[ib] + moved[ic] == 0:
+        return
+    lo = wp.min(wp.min(x[ia], x[ib]), x[ic]) - wp.vec3(half)
+    hi = wp.max(wp.max(x[ia], x[ib]), x[ic]) + wp.vec3(half)
+    q = wp.bvh_query_aabb(vbvh, lo, hi)
+    v = int(0)
+    while wp.bvh_query_next(q, v):
+        if moved[v] == 0:
+            clearance_vt_pair(v, t, x, tris, inv_mass, h, allow)
+
+
+@wp.func
+def clearance_ee_pair(e: int, f: int, x: wp.array(dtype=wp.vec3),
+                      edges: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
+                      h: float, allow: wp.array(dtype=float)):
+    ia = edges[e, 0]
+    ib = edges[e, 1]
+    ic = edges[f, 0]
+    id = edges[f, 1]
+    if ic == ia or ic == ib or id == ia or id == ib:
+        return
+    if inv_mass[ia] + inv_mass[ib] + inv_mass[ic] + inv_mass[id] == 0.0:
+        return
+    d = float(ee_distance(d3(x[ia]), d3(x[ib]), d3(x[ic]), d3(x[id])))
+    clearance_share(d, h, ia, ib, ic, id, allow)
 
 
 @wp.kernel
 def clearance_ee_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
                         edges: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
                         lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3),
-                        h: float, allow: wp.array(dtype=float)):
-    """Edge ``e`` against the edges of higher index within reach (`clearance_vt_kernel`)."""
+                        h: float, moved: wp.array(dtype=int), allow: wp.array(dtype=float)):
+    """Edge ``e`` against the edges of higher index within reach (`clearance_vt_kernel`); with
+    a ``moved`` set, only an edge with a moved vertex, which also takes the lower edges that
+    have none."""
     e = wp.tid()
+    some = moved.shape[0] > 0
+    if some:
+        if moved[edges[e, 0]] + moved[edges[e, 1]] == 0:
+            return
     q = wp.bvh_query_aabb(bvh, lowers[e], uppers[e])
     f = int(0)
-    ia = edges[e, 0]
-    ib = edges[e, 1]
     while wp.bvh_query_next(q, f):
-        if f <= e:
-            continue
-        ic = edges[f, 0]
-        id = edges[f, 1]
-        if ic == ia or ic == ib or id == ia or id == ib:
-            continue
-        if inv_mass[ia] + inv_mass[ib] + inv_mass[ic] + inv_mass[id] == 0.0:
-            continue
-        d = float(ee_distance(d3(x[ia]), d3(x[ib]), d3(x[ic]), d3(x[id])))
-        clearance_share(d, h, ia, ib, ic, id, allow)
+        if f > e:
+            clearance_ee_pair(e, f, x, edges, inv_mass, h, allow)
+        elif some:
+            if moved[edges[f, 0]] + moved[edges[f, 1]] == 0:
+                clearance_ee_pair(f, e, x, edges, inv_mass, h, allow)
+
+
+@wp.kernel
+def clearance_moved_kernel(x: wp.array(dtype=wp.vec3), ref: wp.array(dtype=wp.vec3),
+                           tau: float, fraction: float, moved: wp.array(dtype=int),
+                           still: wp.array(dtype=float), count: wp.array(dtype=int),
+                           full: wp.array(dtype=int)):
+    """Against the last full pass (positions ``ref``): a vertex moved once farther than
+    ``tau``; ``still[0]``: the farthest any other vertex went; a full pass is due (``full``)
+    once more than ``fraction`` of the vertices moved, or when ``full`` was already set."""
+    i = wp.tid()
+    d = x[i] - ref[i]
+    moved[i] = 0
+    l2 = wp.dot(d, d)
+    if l2 > tau * tau:
+        moved[i] = 1
+        c = wp.atomic_add(count, 0, 1)
+        if float(c + 1) > fraction * float(x.shape[0]):
+            full[0] = 1
+    else:
+        wp.atomic_max(still, 0, wp.sqrt(l2))
+
+
+@wp.kernel
+def clearance_start_kernel(allow_ref: wp.array(dtype=float), still: wp.array(dtype=float),
+                           allow: wp.array(dtype=float)):
+    """A pair none of whose vertices moved is at most ``2 still`` closer than at the last full
+    pass: its vertices keep that pass's allowance less ``still``."""
+    i = wp.tid()
+    allow[i] = allow_ref[i] - still[0]
+
+
+@wp.kernel
+def clearance_keep_kernel(x: wp.array(dtype=wp.vec3), allow: wp.array(dtype=float),
+                          ref: wp.array(dtype=wp.vec3), allow_ref: wp.array(dtype=float),
+                          count: wp.array(dtype=int), full: wp.array(dtype=int)):
+    """After a full pass: its positions and allowances are the reference of the next ones."""
+    i = wp.tid()
+    ref[i] = x[i]
+    allow_ref[i] = allow[i]
+    if i == 0:
+        count[0] = 0
+        full[0] = 0
 
 
 @wp.kernel
@@ -613,14 +708,23 @@ class SelfCollision:
             self._active = wp.zeros(n, dtype=int, device=d)  # per vertex, `active_kernel`
             self._clear_boxes = [wp.zeros(k, dtype=wp.vec3, device=d) for k in
                                  (self.broad.num_tris, self.broad.num_tris,
-                                  self.broad.num_edges, self.broad.num_edges)]
+                                  self.broad.num_edges, self.broad.num_edges, n, n)]
             self._clear_bvh = None
+            # the last full pass's positions and allowances; moved flags and their count; a
+            # full pass due (`clear`)
+            self._ref = wp.zeros(n, dtype=wp.vec3, device=d)
+            self._allow_ref = wp.zeros(n, dtype=float, device=d)
+            self._moved = wp.zeros(n, dtype=int, device=d)
+            self._nmoved = wp.zeros(1, dtype=int, device=d)
+            self._still = wp.zeros(1, dtype=float, device=d)
+            self._full = wp.ones(1, dtype=int, device=d)
         if self.allowances and self._clear_bvh is None:  # BVHs built now, not in a capture
             x = wp.array(self.model.mesh.vertices, dtype=wp.vec3, device=self.device)
-            self.clear(x)
+            self._clear_bounds(x, True)
             if self.broad.method == "bvh":
                 self.broad.update(x, x, self.thickness, vertices=True)
         self._allow.fill_(-1.0)  # until the first response: none (``reach`` everywhere)
+        self._full.fill_(1)  # and its pass is a full one
 
     def restart_span(self) -> None:
         """The next step starts a frame (of a run from a new state: allowances back to
@@ -628,6 +732,7 @@ class SelfCollision:
         self._k = 0
         if self._span is not None:
             self._allow.fill_(-1.0)
+            self._full.fill_(1)
 
     def clear(self, x) -> None:
         """Each vertex's allowance for the next span: how far it may move before a pair it
@@ -638,28 +743,77 @@ class SelfCollision:
         pairs, and at most ``(clearance - h) / 2``, which covers every pair farther than
         ``clearance`` (the query boxes, inflated by half of it each, find every nearer pair). The
         span then waits for a vertex to pass ``max(reach, allowance)``: near other layers as
-        before (``reach``), much longer where the cloth is clear of itself."""
+        before (``reach``), much longer where the cloth is clear of itself.
+
+        A full pass looks at every pair; while fewer than a quarter of the vertices moved more
+        than the reach since the last full pass, a partial one looks only at the pairs of those
+        (from the moved vertex, from a triangle with a moved corner, from an edge with a moved
+        vertex), and every other vertex keeps the full pass's allowance less the farthest a
+        still vertex went (a pair of still vertices is at most twice that closer): a lower
+        bound, never above the exact allowance. The choice is a device-side flag
+        (`wp.capture_if`): capturable."""
+        d = self.device
+        self._nmoved.zero_()
+        self._still.zero_()
+        wp.launch(clearance_moved_kernel, self.model.num_vertices,
+                  [x, self._ref, self._reach, CLEAR_FULL_FRACTION, self._moved, self._still,
+                   self._nmoved, self._full], device=d)
+        wp.capture_if(self._full, on_true=self._clear_full, on_false=self._clear_part, x=x)
+
+    def _clear_bounds(self, x, vertices: bool):
         d, b = self.device, self.broad
         half = 0.5 * self.clearance
-        tl, tu, el, eu = self._clear_boxes
-        wp.launch(fill_kernel, len(self._allow), [self._allow, self.reach_max], device=d)
+        tl, tu, el, eu, vl, vu = self._clear_boxes
         wp.launch(cloth_bounds_kernel, b.num_tris + b.num_edges,
                   [x, x, b.tris, b.edges, b.num_tris, half, tl, tu, el, eu], device=d)
+        if vertices:
+            wp.launch(vertex_bounds_kernel, len(x), [x, x, half, vl, vu], device=d)
         if self._clear_bvh is None:
-            self._clear_bvh = (wp.Bvh(tl, tu), wp.Bvh(el, eu))
+            self._clear_bvh = (wp.Bvh(tl, tu), wp.Bvh(el, eu), wp.Bvh(vl, vu))
         else:
-            for bvh in self._clear_bvh:
+            for bvh in self._clear_bvh[:3 if vertices else 2]:
                 bvh.refit()
-        tb, eb = self._clear_bvh
-        m = self.model
+        return half
+
+    def _clear_full(self, x):
+        # every pair within the clearance; the result is the next passes' reference
+        d, b, m = self.device, self.broad, self.model
+        wp.launch(fill_kernel, len(self._allow), [self._allow, self.reach_max], device=d)
+        half = self._clear_bounds(x, self._clear_bvh is None)
+        tb, eb = self._clear_bvh[:2]
+        el, eu = self._clear_boxes[2:4]
         if b.num_tris:
             wp.launch(clearance_vt_kernel, m.num_vertices,
-                      [tb.id, x, b.tris, m.inv_mass, half, self.thickness, self._allow],
-                      device=d)
+                      [tb.id, x, b.tris, m.inv_mass, half, self.thickness, self._no_int,
+                       self._allow], device=d)
         if b.num_edges:
             wp.launch(clearance_ee_kernel, b.num_edges,
-                      [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._allow],
-                      device=d)
+                      [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._no_int,
+                       self._allow], device=d)
+        wp.launch(clearance_keep_kernel, m.num_vertices,
+                  [x, self._allow, self._ref, self._allow_ref, self._nmoved, self._full],
+                  device=d)
+
+    def _clear_part(self, x):
+        # the pairs with a vertex that moved since the last full pass; the others keep that
+        # pass's allowance less the farthest a still vertex went
+        d, b, m = self.device, self.broad, self.model
+        wp.launch(clearance_start_kernel, m.num_vertices, [self._allow_ref, self._still,
+                                                          self._allow], device=d)
+        half = self._clear_bounds(x, True)
+        tb, eb, vb = self._clear_bvh
+        el, eu = self._clear_boxes[2:4]
+        if b.num_tris:
+            wp.launch(clearance_vt_kernel, m.num_vertices,
+                      [tb.id, x, b.tris, m.inv_mass, half, self.thickness, self._moved,
+                       self._allow], device=d)
+            wp.launch(clearance_tv_kernel, b.num_tris,
+                      [vb.id, x, b.tris, m.inv_mass, half, self.thickness, self._moved,
+                       self._allow], device=d)
+        if b.num_edges:
+            wp.launch(clearance_ee_kernel, b.num_edges,
+                      [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._moved,
+                       self._allow], device=d)
 
     def step(self, state, x_start, dt: float) -> None:
         """Self-collision after one solver step: `resolve` every step, or once per span
