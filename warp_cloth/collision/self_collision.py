@@ -87,6 +87,33 @@ FAILSAFE_GAP = 0.05
 
 
 @wp.func
+def vt_ids(v: int, t: int, tris: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float)):
+    """Triangle ``t``'s corners, and whether ``(v, t)`` is a pair at all: not when ``v`` is a
+    corner (adjacent) or all four vertices are pinned."""
+    ia = tris[t, 0]
+    ib = tris[t, 1]
+    ic = tris[t, 2]
+    ok = not (ia == v or ib == v or ic == v)
+    if inv_mass[v] + inv_mass[ia] + inv_mass[ib] + inv_mass[ic] == 0.0:
+        ok = False
+    return ia, ib, ic, ok
+
+
+@wp.func
+def ee_ids(e: int, f: int, edges: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float)):
+    """The two edges' vertices, and whether ``(e, f)`` is a pair at all: not when they share a
+    vertex or all four are pinned."""
+    ia = edges[e, 0]
+    ib = edges[e, 1]
+    ic = edges[f, 0]
+    id = edges[f, 1]
+    ok = not (ic == ia or ic == ib or id == ia or id == ib)
+    if inv_mass[ia] + inv_mass[ib] + inv_mass[ic] + inv_mass[id] == 0.0:
+        ok = False
+    return ia, ib, ic, id, ok
+
+
+@wp.func
 def vt_pair(v: int, t: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
             tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
             inv_mass: wp.array(dtype=float), rec: ContactRecord,
@@ -94,12 +121,8 @@ def vt_pair(v: int, t: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.v
     """Vertex ``v`` against triangle ``t`` (a broad-phase candidate): skipped when ``v`` is one
     of its corners or all four are pinned; with a ``pairs`` buffer the pair is only listed
     (broad-phase tests), else the continuous test appends a contact."""
-    ia = tris[t, 0]
-    ib = tris[t, 1]
-    ic = tris[t, 2]
-    if ia == v or ib == v or ic == v:
-        return
-    if inv_mass[v] + inv_mass[ia] + inv_mass[ib] + inv_mass[ic] == 0.0:
+    ia, ib, ic, ok = vt_ids(v, t, tris, inv_mass)
+    if not ok:
         return
     if pairs.shape[0] > 0:
         k = wp.atomic_add(npairs, 0, 1)
@@ -130,13 +153,8 @@ def ee_pair(e: int, f: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.v
     four are pinned; listed or tested as `vt_pair`."""
     if f <= e:
         return
-    ia = edges[e, 0]
-    ib = edges[e, 1]
-    ic = edges[f, 0]
-    id = edges[f, 1]
-    if ic == ia or ic == ib or id == ia or id == ib:
-        return
-    if inv_mass[ia] + inv_mass[ib] + inv_mass[ic] + inv_mass[id] == 0.0:
+    ia, ib, ic, id, ok = ee_ids(e, f, edges, inv_mass)
+    if not ok:
         return
     if pairs.shape[0] > 0:
         k = wp.atomic_add(npairs, 0, 1)
@@ -377,12 +395,8 @@ def clearance_share(d: float, h: float, i0: int, i1: int, i2: int, i3: int,
 def clearance_vt_pair(v: int, t: int, x: wp.array(dtype=wp.vec3),
                       tris: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
                       h: float, allow: wp.array(dtype=float)):
-    ia = tris[t, 0]
-    ib = tris[t, 1]
-    ic = tris[t, 2]
-    if ia == v or ib == v or ic == v:
-        return
-    if inv_mass[v] + inv_mass[ia] + inv_mass[ib] + inv_mass[ic] == 0.0:
+    ia, ib, ic, ok = vt_ids(v, t, tris, inv_mass)
+    if not ok:
         return
     d = float(vt_distance(d3(x[v]), d3(x[ia]), d3(x[ib]), d3(x[ic])))
     clearance_share(d, h, v, ia, ib, ic, allow)
@@ -433,13 +447,8 @@ def clearance_tv_kernel(vbvh: wp.uint64, x: wp.array(dtype=wp.vec3),
 def clearance_ee_pair(e: int, f: int, x: wp.array(dtype=wp.vec3),
                       edges: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
                       h: float, allow: wp.array(dtype=float)):
-    ia = edges[e, 0]
-    ib = edges[e, 1]
-    ic = edges[f, 0]
-    id = edges[f, 1]
-    if ic == ia or ic == ib or id == ia or id == ib:
-        return
-    if inv_mass[ia] + inv_mass[ib] + inv_mass[ic] + inv_mass[id] == 0.0:
+    ia, ib, ic, id, ok = ee_ids(e, f, edges, inv_mass)
+    if not ok:
         return
     d = float(ee_distance(d3(x[ia]), d3(x[ib]), d3(x[ic]), d3(x[id])))
     clearance_share(d, h, ia, ib, ic, id, allow)
