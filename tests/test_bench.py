@@ -201,6 +201,12 @@ def test_selfcollision_bench_reports_both_variants(capsys):
     every, spans = rows[2], rows[3]
     assert every["responses"] == every["substeps"]  # self_motion 0: after every step
     assert 1 <= spans["responses"] < every["responses"]  # spans: the frame's end at least
+    assert selfcollision.main(["--scenes", "twist", "--solver", "pd", "--res", "4", "--warmup",
+                               "30", "--rounds", "1", "--broadphase", "bvh", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [(r["scene"], r["res"], r["solver"], r["self_motion"]) for r in rows] == [
+        ("twist", 4, "pd", 0.0), ("twist", 4, "pd", 0.25)]
+    assert all(r["ms_step_with"] > 0 and r["ms_step_without"] > 0 for r in rows)
     with pytest.raises(SystemExit):
         selfcollision.main(["--self-motion", "-1"])
 

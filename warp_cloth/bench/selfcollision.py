@@ -1,8 +1,10 @@
-"""``warp-cloth bench selfcollision``: what self-collision costs per step, on the fold scene.
+"""``warp-cloth bench selfcollision``: what self-collision costs per step, on fold and twist.
 
-For each solver (``--solver``, default all), the ``fold`` scene (``--res`` cells a side, 60 fps,
-each solver's default substeps) runs ``--warmup`` frames with self-collision until the lifted half
-lies on the other (the expensive case: every vertex near another layer). Then one frame of
+For each scene (``--scenes``: ``fold``, the default, and ``twist``) and solver (``--solver``,
+default all), the scene (``--res`` cells a side, default 16 for fold and 49 for twist, i.e. its
+50x50 vertices; 60 fps, each solver's default substeps) runs ``--warmup`` frames with
+self-collision: the fold until the lifted half lies on the other (the expensive case: every
+vertex near another layer), the twist until its middle has wound up. Then one frame of
 substeps is timed from that same state with the self-collision pass and with it taken out
 (``stage.self_collision = None``), alternating, ``--rounds`` times, the state restored before each
 frame (outside the timed region), once with each broad phase (``--broadphase``: the hash grid
@@ -35,7 +37,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="warp-cloth bench selfcollision", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--solver", nargs="+", default=["implicit", "pd", "explicit", "pbd"])
-    p.add_argument("--res", type=int, default=16)
+    p.add_argument("--scenes", nargs="+", default=["fold"], choices=["fold", "twist"])
+    p.add_argument("--res", type=int, default=None,
+                   help="cells a side (default: 16 for fold, 49 for twist)")
     p.add_argument("--warmup", type=int, default=60, help="frames before timing")
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--device", default=None)
@@ -44,7 +48,7 @@ def main(argv=None) -> int:
                    help="comma-separated CollisionStage self_motion values (default 0,0.25)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
-    if args.res < 2 or args.warmup < 0 or args.rounds < 1:
+    if (args.res is not None and args.res < 2) or args.warmup < 0 or args.rounds < 1:
         p.error("--res >= 2, --warmup >= 0 and --rounds >= 1")
     try:
         motions = [float(v) for v in args.self_motion.split(",")]
@@ -53,13 +57,16 @@ def main(argv=None) -> int:
     if not motions or any(not (v >= 0) for v in motions):
         p.error("--self-motion values must be >= 0")
     quiet_warp()
-    from ..contact_scenes import fold
+    from .. import contact_scenes
     from ..scene import suggest_substeps
 
     rows = []
     t_all = time.perf_counter()
-    for name in args.solver:
-        scene = fold(solver=name, res=args.res, frames=1, device=args.device)
+    cases = [(sn, name) for sn in args.scenes for name in args.solver]
+    for scene_name, name in cases:
+        res = args.res if args.res is not None else {"fold": 16, "twist": 49}[scene_name]
+        scene = getattr(contact_scenes, scene_name)(solver=name, res=res, frames=600,
+                                                    device=args.device)
         solver, stage = scene.solver, scene.collision
         substeps = suggest_substeps(solver, 1.0 / 60.0)
         dt = 1.0 / (60.0 * substeps)
@@ -105,20 +112,21 @@ def main(argv=None) -> int:
                 continue
             bp, mo = variant
             w = 1e3 * statistics.median(times[variant]) / substeps
-            rows.append(dict(solver=name, broadphase=bp, self_motion=mo, substeps=substeps,
+            rows.append(dict(scene=scene_name, res=res, solver=name, broadphase=bp, self_motion=mo, substeps=substeps,
                              ms_step_with=w, ms_step_without=wo, overhead=w / wo - 1.0,
                              responses=responses[variant], contacts=contacts[variant],
                              vertices=scene.model.num_vertices))
     if args.json:
         print(json.dumps(rows, indent=1))
         return 0
-    print(f"# self-collision cost: fold scene, {args.res}x{args.res} cells, after {args.warmup} "
-          f"frames (lying folded), median of {args.rounds} rounds, launches not captured\n")
-    print("| solver | broad phase | self_motion | substeps/frame | ms/step without | "
+    print(f"# self-collision cost: {', '.join(args.scenes)}, after {args.warmup} frames, median "
+          f"of {args.rounds} rounds, launches not captured\n")
+    print("| scene | solver | broad phase | self_motion | substeps/frame | ms/step without | "
           "ms/step with | overhead | responses in the frame | contacts in the frame |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['solver']} | {r['broadphase']} | {r['self_motion']:g} | {r['substeps']} | "
+        print(f"| {r['scene']} {r['res']}x{r['res']} | {r['solver']} | {r['broadphase']} | "
+              f"{r['self_motion']:g} | {r['substeps']} | "
               f"{r['ms_step_without']:.2f} | {r['ms_step_with']:.2f} | "
               f"{100 * r['overhead']:+.0f} % | {r['responses']} | {r['contacts']} |")
     print(f"\n({time.perf_counter() - t_all:.0f} s)")
