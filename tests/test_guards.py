@@ -115,3 +115,21 @@ def test_extent_is_written_every_frame(tmp_usd):
         np.testing.assert_allclose(ext, [pts.min(0), pts.max(0)], atol=1e-7)
         exts.append(ext)
     assert exts[0][0, 1] - exts[2][0, 1] > 0.05  # the cloth fell: the extents differ
+
+
+def test_meter_sums_kinetic_and_potential_energy_in_float64():
+    """The Meter's kinetic and gravitational energies against a float64 host sum: a 48x48 sheet
+    1 km up with random velocities, where a float32 sum of its 2,401 vertices' potentials
+    (about 1,500 J), or of float32 terms, is off by 3.6e-5 J; the Meter's is below 1e-6 J."""
+    mesh = TriMesh.grid(48, 48, size=1.0, plane="xz", origin=(0.0, 1000.0, 0.0))
+    model = ClothModel(mesh, device="cpu")
+    state = model.state()
+    rng = np.random.default_rng(1)
+    v = rng.normal(0.0, 3.0, (model.num_vertices, 3)).astype(np.float32)
+    state.v.assign(v)
+    x = state.x.numpy().astype(np.float64)
+    m = model.mass.numpy().astype(np.float64)
+    g = np.asarray(model.gravity, np.float32).astype(np.float64)  # as the kernels get it
+    meas = Meter(model)(state, energy=False)
+    assert abs(meas.gravity_potential - float(-(m * (x @ g)).sum())) < 1e-6
+    assert abs(meas.kinetic - float(0.5 * (m * (v.astype(np.float64) ** 2).sum(1)).sum())) < 1e-6
