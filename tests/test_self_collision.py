@@ -92,6 +92,14 @@ def test_self_collision_alone_and_its_arguments():
         CollisionStage(model)
     with pytest.raises(ValueError, match="self_thickness"):
         CollisionStage(model, self_collision=True, self_thickness=-1.0)
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    for bad in (-1.0, float("nan"), float("inf"), "wide", None):
+        with pytest.raises(ValueError, match="clearance"):
+            SelfCollision(model, 0.004, clearance=bad)
+    sc = SelfCollision(model, 0.004, clearance=1.0)  # no allowances: the reach everywhere
+    sc.plan(10, 0.25)
+    assert not sc.allowances
 
 
 def test_default_fold_on_the_floor_stays_above_it():

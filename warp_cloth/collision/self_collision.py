@@ -625,11 +625,15 @@ class SelfCollision:
         self._in_span = False
         self._gap = self.thickness  # a round's detection gap (`_span_resolve`)
         self._no_int = wp.zeros(0, dtype=int, device=d)
-        self.clearance = float(clearance) * self.thickness
-        if not self.clearance >= 0.0:
-            raise ValueError(f"self-collision clearance must be >= 0 thicknesses, got "
-                             f"{clearance!r}")
-        self._allowances = float(clearance) > 1.01
+        try:
+            c = float(clearance)
+        except (TypeError, ValueError):
+            c = float("nan")
+        if not (c >= 0.0 and c < float("inf")):
+            raise ValueError(f"self-collision clearance must be a number of thicknesses >= 0, "
+                             f"got {clearance!r}")
+        self.clearance = c * self.thickness
+        self._allowances = c > 1.01
         self.allowances = False  # in use (`plan`)
 
     def detect(self, x0, x1, gap: float, record, done=None) -> None:
