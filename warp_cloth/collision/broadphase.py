@@ -64,13 +64,20 @@ def box_centres_kernel(lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=w
     wp.atomic_max(rmax, slot, 0.5 * wp.length(hi - lo))
 
 
+@wp.func
+def vertex_box(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), v: int, gap: float):
+    """Vertex ``v``'s swept box, inflated by ``gap``."""
+    return wp.min(x0[v], x1[v]) - wp.vec3(gap), wp.max(x0[v], x1[v]) + wp.vec3(gap)
+
+
 @wp.kernel
 def vertex_bounds_kernel(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), pad: float,
                          lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
     """Swept boxes of the vertices, inflated by ``pad``."""
     i = wp.tid()
-    lowers[i] = wp.min(x0[i], x1[i]) - wp.vec3(pad)
-    uppers[i] = wp.max(x0[i], x1[i]) + wp.vec3(pad)
+    lo, hi = vertex_box(x0, x1, i, pad)
+    lowers[i] = lo
+    uppers[i] = hi
 
 
 @wp.kernel

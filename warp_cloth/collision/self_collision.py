@@ -52,7 +52,7 @@ from __future__ import annotations
 import warp as wp
 
 from .broadphase import (ClothBroadPhase, boxes_overlap, cloth_bounds_kernel, grid_radius,
-                         vertex_bounds_kernel)
+                         vertex_bounds_kernel, vertex_box)
 from .features import inelastic_apply, inelastic_apply_kernel, jacobi_project_kernel
 from .impact_zones import ImpactZones
 from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_distance, ee_impact,
@@ -174,11 +174,6 @@ def ee_pair(e: int, f: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.v
 
 
 @wp.func
-def vertex_box(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), v: int, gap: float):
-    return wp.min(x0[v], x1[v]) - wp.vec3(gap), wp.max(x0[v], x1[v]) + wp.vec3(gap)
-
-
-@wp.func
 def edge_box(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
              edges: wp.array2d(dtype=wp.int32), e: int, gap: float):
     ia = edges[e, 0]
@@ -211,27 +206,22 @@ def self_vt_bvh_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array
 
 
 @wp.kernel
-def self_tv_bvh_kernel(vbvh: wp.uint64, x0: wp.array(dtype=wp.vec3),
+def self_tv_bvh_kernel(vbvh: wp.uint64, lowers: wp.array(dtype=wp.vec3),
+                       uppers: wp.array(dtype=wp.vec3), x0: wp.array(dtype=wp.vec3),
                        x1: wp.array(dtype=wp.vec3), tris: wp.array2d(dtype=wp.int32),
                        gap: float, sep: float, inv_mass: wp.array(dtype=float),
                        done: wp.array(dtype=int), active: wp.array(dtype=int),
                        rec: ContactRecord, pairs: wp.array(dtype=wp.vec2i),
                        npairs: wp.array(dtype=int)):
     """Triangle ``t`` with an active corner against the inactive vertices whose swept box meets
-    its own (the vertices' BVH): the vertex-triangle pairs `self_vt_bvh_kernel` leaves out."""
+    its own (the broad phase's, ``lowers`` / ``uppers``; the vertices' BVH): the
+    vertex-triangle pairs `self_vt_bvh_kernel` leaves out."""
     t = wp.tid()
     if done[0] != 0:
         return
-    ia = tris[t, 0]
-    ib = tris[t, 1]
-    ic = tris[t, 2]
-    if active[ia] + active[ib] + active[ic] == 0:
+    if active[tris[t, 0]] + active[tris[t, 1]] + active[tris[t, 2]] == 0:
         return
-    lo = wp.min(wp.min(wp.min(x0[ia], x1[ia]), wp.min(x0[ib], x1[ib])),
-                wp.min(x0[ic], x1[ic])) - wp.vec3(gap)
-    hi = wp.max(wp.max(wp.max(x0[ia], x1[ia]), wp.max(x0[ib], x1[ib])),
-                wp.max(x0[ic], x1[ic])) + wp.vec3(gap)
-    q = wp.bvh_query_aabb(vbvh, lo, hi)
+    q = wp.bvh_query_aabb(vbvh, lowers[t], uppers[t])
     v = int(0)
     while wp.bvh_query_next(q, v):
         if active[v] == 0:
@@ -422,21 +412,17 @@ def clearance_vt_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
 
 
 @wp.kernel
-def clearance_tv_kernel(vbvh: wp.uint64, x: wp.array(dtype=wp.vec3),
+def clearance_tv_kernel(vbvh: wp.uint64, lowers: wp.array(dtype=wp.vec3),
+                        uppers: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3),
                         tris: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
-                        half: float, h: float, moved: wp.array(dtype=int),
-                        allow: wp.array(dtype=float)):
-    """Triangle ``t`` with a moved corner against the vertices that did not move within
-    ``2 half`` (the vertices' BVH): the pairs `clearance_vt_kernel` leaves out."""
+                        h: float, moved: wp.array(dtype=int), allow: wp.array(dtype=float)):
+    """Triangle ``t`` with a moved corner (its box inflated by half the clearance, ``lowers`` /
+    ``uppers``) against the vertices that did not move within the clearance (the vertices'
+    BVH): the pairs `clearance_vt_kernel` leaves out."""
     t = wp.tid()
-    ia = tris[t, 0]
-    ib = tris[t, 1]
-    ic = tris[t, 2]
-    if moved[ia] + moved[ib] + moved[ic] == 0:
+    if moved[tris[t, 0]] + moved[tris[t, 1]] + moved[tris[t, 2]] == 0:
         return
-    lo = wp.min(wp.min(x[ia], x[ib]), x[ic]) - wp.vec3(half)
-    hi = wp.max(wp.max(x[ia], x[ib]), x[ic]) + wp.vec3(half)
-    q = wp.bvh_query_aabb(vbvh, lo, hi)
+    q = wp.bvh_query_aabb(vbvh, lowers[t], uppers[t])
     v = int(0)
     while wp.bvh_query_next(q, v):
         if moved[v] == 0:
@@ -510,13 +496,13 @@ def clearance_start_kernel(allow_ref: wp.array(dtype=float), still: wp.array(dty
 @wp.kernel
 def clearance_keep_kernel(x: wp.array(dtype=wp.vec3), allow: wp.array(dtype=float),
                           ref: wp.array(dtype=wp.vec3), allow_ref: wp.array(dtype=float),
-                          count: wp.array(dtype=int), full: wp.array(dtype=int)):
-    """After a full pass: its positions and allowances are the reference of the next ones."""
+                          full: wp.array(dtype=int)):
+    """After a full pass: its positions and allowances are the reference of the next ones (and
+    no full pass is forced any more)."""
     i = wp.tid()
     ref[i] = x[i]
     allow_ref[i] = allow[i]
     if i == 0:
-        count[0] = 0
         full[0] = 0
 
 
@@ -685,7 +671,8 @@ class SelfCollision:
                            active, record, vt_pairs, npairs], device=d)
                 if self._in_span:
                     wp.launch(self_tv_bvh_kernel, b.num_tris,
-                              [b.vertex_bvh.id, *common, b.tris, gap, self.thickness,
+                              [b.vertex_bvh.id, b.lowers, b.uppers, *common, b.tris, gap,
+                               self.thickness,
                                m.inv_mass, done, active, record, vt_pairs, npairs], device=d)
             if ee:
                 wp.launch(self_ee_bvh_kernel, b.num_edges,
@@ -804,7 +791,7 @@ class SelfCollision:
                       [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._no_int,
                        self._allow], device=d)
         wp.launch(clearance_keep_kernel, m.num_vertices,
-                  [x, self._allow, self._ref, self._allow_ref, self._nmoved, self._full],
+                  [x, self._allow, self._ref, self._allow_ref, self._full],
                   device=d)
 
     def _clear_part(self, x):
@@ -820,8 +807,9 @@ class SelfCollision:
             wp.launch(clearance_vt_kernel, m.num_vertices,
                       [tb.id, x, b.tris, m.inv_mass, half, self.thickness, self._moved,
                        self._allow], device=d)
+            tl, tu = self._clear_boxes[:2]
             wp.launch(clearance_tv_kernel, b.num_tris,
-                      [vb.id, x, b.tris, m.inv_mass, half, self.thickness, self._moved,
+                      [vb.id, tl, tu, x, b.tris, m.inv_mass, self.thickness, self._moved,
                        self._allow], device=d)
         if b.num_edges:
             wp.launch(clearance_ee_kernel, b.num_edges,
