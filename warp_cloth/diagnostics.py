@@ -103,3 +103,53 @@ def edge_strains(model, positions) -> np.ndarray:
     e = model.mesh.edges
     rest = model.spring_rest[: len(e)]
     return np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1) / rest - 1.0
+
+
+def frame_energy(model, state, *, velocity=(0.0, 0.0, 0.0), angular_velocity=(0.0, 0.0, 0.0),
+                 center=(0.0, 0.0, 0.0), meter: Meter | None = None) -> float:
+    """The cloth's energy seen from a frame that moves rigidly with an obstacle (J, host read).
+
+    A moving obstacle does work on the cloth, so the cloth's energy (`Measure.energy`) may rise
+    while the obstacle moves. Seen from a frame that moves with the obstacle, the obstacle is
+    at rest and its contact forces (normal and friction) can only take energy out; what must
+    then never rise is::
+
+        J = sum_i 1/2 m_i |v_i - u_i|^2 + gravity potential + elastic - sum_i 1/2 m_i |w x r_i|^2
+
+    with ``u_i = velocity + w x r_i``, ``r_i = x_i - center``, ``w = angular_velocity``: for a
+    translating frame (``w = 0``) the kinetic energy relative to ``velocity``; for a frame
+    turning about a vertical axis through ``center`` the Jacobi integral (the last sum is the
+    centrifugal potential; the Coriolis force does no work). This is how the tests check "no
+    energy gained except the work of a moving obstacle" on the spinning sphere and a sliding
+    mesh: over steps in which the obstacle's motion is constant, ``J`` must not rise.
+
+    Args:
+        model: the `ClothModel`.
+        state: its state (``x``, ``v``).
+        velocity: m/s, the frame's translation.
+        angular_velocity: rad/s; must be parallel to gravity (else gravity, turning in that
+            frame, does work there and ``J`` is not conserved): ValueError otherwise.
+        center: m, a point on the rotation axis.
+        meter: a `Meter` of the model to reuse (made when None).
+    """
+    U = np.asarray(velocity, dtype=np.float64).reshape(3)
+    w = np.asarray(angular_velocity, dtype=np.float64).reshape(3)
+    c = np.asarray(center, dtype=np.float64).reshape(3)
+    for name, a in (("velocity", U), ("angular_velocity", w), ("center", c)):
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"frame_energy: {name} must be finite, got {a.tolist()}")
+    g = np.asarray(model.gravity, dtype=np.float64)
+    if np.linalg.norm(np.cross(w, g)) > 1e-9 * max(np.linalg.norm(w) * np.linalg.norm(g), 1e-30):
+        raise ValueError(f"frame_energy: angular_velocity {w.tolist()} must be parallel to gravity "
+                         f"{g.tolist()} (gravity would do work in a frame turning about another "
+                         f"axis)")
+    meter = meter if meter is not None else Meter(model)
+    m = meter(state)
+    mass = model.mass.numpy().astype(np.float64)
+    x = state.x.numpy().astype(np.float64)
+    v = state.v.numpy().astype(np.float64)
+    rot = np.cross(w, x - c)
+    u = U + rot
+    rel = 0.5 * float(np.sum(mass * np.sum((v - u) ** 2, axis=1)))
+    centrifugal = 0.5 * float(np.sum(mass * np.sum(rot * rot, axis=1)))
+    return rel + m.gravity_potential + m.elastic - centrifugal
