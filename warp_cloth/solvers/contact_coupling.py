@@ -21,7 +21,7 @@ to the diagonal can only lower the spectral radius of the Jacobi iteration (Rayl
   at every Newton iterate: ``E_c`` is C^1 and piecewise quadratic). Entries with several
   vertices (vertex-triangle, edge-edge: self-contacts, cloth edges on a mesh's sharp features)
   get their full Hessian: the diagonal blocks there and the off-diagonal coupling as an
-  operator term (`self_matvec_kernel`, through `matvec_add`). With the diagonal blocks alone,
+  operator term (`pair_matvec_kernel`, through `matvec_add`). With the diagonal blocks alone,
   Newton did not converge where cloth rests on such entries, and the response after the solve
   lifted the cloth out every step: a 16 x 16 sheet on the ``mesh`` scene's resting torus gained
   up to 1.9e-2 J in a frame (1.9e-4 J with the full Hessian).
@@ -296,7 +296,7 @@ def newton_contact_kernel(
     """Active entries: their force ``-grad E_c`` into ``b``; their blocks into ``diag`` and
     ``vblock`` (``w_j^2 H``), the normal penalty's alone into ``nblock`` (for the residual);
     the number of active entries into ``active[0]``; with an ``on_out`` array, each entry's
-    activity (the off-diagonal part of the multi-vertex entries' Hessian, `self_matvec_kernel`)."""
+    activity (the off-diagonal part of the multi-vertex entries' Hessian, `pair_matvec_kernel`)."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
@@ -324,7 +324,7 @@ def add_overflow_kernel(rec: ContactRecord, total: wp.array(dtype=int)):
 
 
 @wp.kernel
-def self_matvec_kernel(rec: ContactRecord, on: wp.array(dtype=int),
+def pair_matvec_kernel(rec: ContactRecord, on: wp.array(dtype=int),
                        inv_mass: wp.array(dtype=float), kappa_dt2: float, num_threads: int,
                        x: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
     """The off-diagonal part of the active multi-vertex entries' Hessian
@@ -497,7 +497,7 @@ def pd_contact_kernel(
     ``-k_c min(g, 0) w_j n`` (and friction); the blocks ``w_j^2 H`` into ``vblock`` for this
     iteration's global matrix (lumped, ``|w_j| sum_l |w_l| H``, for an entry of several cloth
     vertices whose off-diagonal part the operator does not hold); ``E_c`` into the objective; with an ``on_out`` array, each
-    entry's activity (`self_matvec_kernel`). An entry marked in ``slide`` (the step's
+    entry's activity (`pair_matvec_kernel`). An entry marked in ``slide`` (the step's
     friction guess found its vertex driven past static friction) has a friction spring of
     ``slide_weight`` times ``k_c``: the inertia block, not 1000 times it (module doc)."""
     t = wp.tid()
@@ -619,6 +619,9 @@ class ContactCoupling:
         feats = getattr(getattr(stage, "features", None), "active", False)
         self.pairs_on = (wp.zeros(max(int(stage.capacity), 1), dtype=int, device=self.device)
                          if feats else None)
+        #: whether `matvec_add` applies the feature pairs' off-diagonal blocks (Newton: yes;
+        #: projective dynamics sets False, its local step writes lumped diagonal blocks)
+        self.pairs_in_operator = True
         self.threads = max(1, -(-stage.capacity // BATCH))
         self.sources = max(1, len(stage.obstacles))
         # normal force per (vertex, obstacle) at the end of the last step: friction's bound
@@ -730,13 +733,17 @@ class ContactCoupling:
 
     # the operator's extra term (`SpringSystemOperator.extra`)
     def matvec_add(self, x, out) -> None:
-        if self.pairs_on is not None:
-            wp.launch(self_matvec_kernel, self.threads,
+        """The off-diagonal blocks of this iteration's active multi-vertex entries times ``x``,
+        added to ``out``: the feature pairs of the obstacle record when Newton writes their
+        activity (`add_newton`; projective dynamics gives them lumped diagonal blocks instead,
+        `pd_contact_kernel`, and skips them here), and the self-contacts."""
+        if self.pairs_on is not None and self.pairs_in_operator:
+            wp.launch(pair_matvec_kernel, self.threads,
                       [self.record, self.pairs_on, self.model.inv_mass,
                        self.kappa / (self._dt * self._dt), self.threads, x, out],
                       device=self.device)
         if self.self_record is not None:
-            wp.launch(self_matvec_kernel, self.self_threads,
+            wp.launch(pair_matvec_kernel, self.self_threads,
                       [self.self_record, self.self_on, self.model.inv_mass,
                        self.kappa / (self._dt * self._dt), self.self_threads, x, out],
                       device=self.device)

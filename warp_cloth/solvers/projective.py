@@ -683,6 +683,7 @@ class ProjectiveDynamics(Solver):
             if self.operator is not None and self._coupling in self.operator.extra:
                 self.operator.extra.remove(self._coupling)
             self._coupling = ContactCoupling(self.model, self.collision, self.contact_stiffness)
+            self._coupling.pairs_in_operator = False  # lumped in `pd_local` instead
         # self-contacts in the global matrix: their off-diagonal blocks as an operator term
         # (not with ``direct``, whose Woodbury update takes single-vertex blocks only)
         if (self._coupling.self_record is not None and not self.direct
