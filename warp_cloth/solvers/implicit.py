@@ -69,7 +69,9 @@ bad one (F 1.4 -> 25 J in one iteration); with Jacobi and Chebyshev inner solves
 gained 20 and 165 J. Now (1) a line search whose four steps all raise F tries steps 16 times
 shorter and else moves nothing (``stats["ls_rejected"]``); (2) a step that reaches its Newton
 cap, or stalls with a Jacobi-type inner solver, while its energy rose by more than 1e-5 of
-``M |g|`` x 1 m goes on for up to ``2 newton_iterations`` more iterations until the rise is gone
+``M |g|`` x 1 m goes on for up to ``2 newton_iterations`` more iterations until the rise is gone,
+checked after every quarter of ``newton_iterations`` (whole rounds iterated up to 6 times more
+than needed: 23 % fewer Newton iterations on the 32 x 32 fold with self-collision)
 (``stats["energy_guard_steps"]``); with Jacobi or Chebyshev it starts again from its initial
 guess with CG and ``3 newton_iterations`` (their iterate kept the energy: continuing it with CG
 still gained); a step that still gains is
@@ -366,7 +368,8 @@ def objective_kernel(
 
 
 #: the energy guard adds up to this many times ``newton_iterations`` to a step that reached its
-#: cap above its tolerance while gaining energy
+#: cap above its tolerance while gaining energy (in rounds of a quarter of them, the gain
+#: checked after each)
 ENERGY_GUARD_ROUNDS = 2
 
 #: with the energy guard, a line search whose four steps all raise F tries these times shorter
@@ -954,7 +957,7 @@ class ImplicitEuler(Solver):
             if k >= cap:  # Newton reached its cap above its tolerance: the energy guard
                 if not guard or self._energy_gain(x, state.v, dt) <= self._guard_eps:
                     break
-                cap += K
+                cap += max(1, K // 4)
                 extended = True
                 if self._guard_linear is not None and not use_cg:
                     self._restart(x, dt)  # a Jacobi-type solve's iterate: start again, CG
