@@ -119,9 +119,10 @@ def frame_energy(model, state, *, velocity=(0.0, 0.0, 0.0), angular_velocity=(0.
     with ``u_i = velocity + w x r_i``, ``r_i = x_i - center``, ``w = angular_velocity``: for a
     translating frame (``w = 0``) the kinetic energy relative to ``velocity``; for a frame
     turning about a vertical axis through ``center`` the Jacobi integral (the last sum is the
-    centrifugal potential; the Coriolis force does no work). This is how the tests check "no
-    energy gained except the work of a moving obstacle" on the spinning sphere and a sliding
-    mesh: over steps in which the obstacle's motion is constant, ``J`` must not rise.
+    centrifugal potential; the Coriolis force does no work). This is how "no energy gained
+    except the work of a moving obstacle" is checked (`tests/test_frame_energy.py` on the
+    spinning sphere, the README's figures also on a sliding torus): over steps in which the
+    obstacle's motion is steady, ``J`` must not rise.
 
     Args:
         model: the `ClothModel`.
