@@ -497,9 +497,10 @@ def pd_contact_kernel(
     ``-k_c min(g, 0) w_j n`` (and friction); the blocks ``w_j^2 H`` into ``vblock`` for this
     iteration's global matrix (lumped, ``|w_j| sum_l |w_l| H``, for an entry of several cloth
     vertices whose off-diagonal part the operator does not hold); ``E_c`` into the objective;
-    with an ``on_out`` array, each entry's activity (`pair_matvec_kernel`). An entry marked in ``slide`` (the step's
-    friction guess found its vertex driven past static friction) has a friction spring of
-    ``slide_weight`` times ``k_c``: the inertia block, not 1000 times it (module doc)."""
+    with an ``on_out`` array, each entry's activity (`pair_matvec_kernel`). An entry marked in
+    ``slide`` (the step's friction guess found its vertex driven past static friction) has a
+    friction spring of ``slide_weight`` times ``k_c``: the inertia block, not 1000 times it
+    (module doc)."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
