@@ -457,7 +457,7 @@ def test_inelastic_response_velocity_exact():
     d = np.array([[0.0, g * dt * dt, 0.0], [0.0, 1e-3, 0.0], [0.0, 1e-3, 0.0], [0.0, 0.0, 0.0]])
     acc = wp.array(2.0 * d, dtype=wp.vec3)
     cnt = wp.array(np.array([2, 2, 2, 0], dtype=np.int32), dtype=int)
-    wp.launch(inelastic_apply_kernel, 4, [x, v, acc, cnt])
+    wp.launch(inelastic_apply_kernel, 4, [x, v, acc, cnt, wp.zeros(0, dtype=wp.vec3), 0.0])
     out = v.numpy()
     np.testing.assert_allclose(out[0], v0[0] + d[0] / dt, atol=1e-7)  # = 0
     np.testing.assert_allclose(out[1], v0[1])
@@ -465,6 +465,22 @@ def test_inelastic_response_velocity_exact():
     np.testing.assert_allclose(out[3], v0[3])
     np.testing.assert_allclose(x.numpy(), d, atol=1e-9)
     assert not acc.numpy().any() and not cnt.numpy().any()
+
+    # a moving obstacle's feature (``moved``: how far the entries' planes moved, summed like
+    # ``acc``): the approach is taken relative to the surface, which here rises at 0.5 m/s
+    up = np.array([0.0, 0.5 * dt, 0.0])
+    x = wp.array(np.zeros((3, 3)), dtype=wp.vec3)
+    v0 = np.array([[0.0, 0.0, 0.0],      # at rest: the surface runs into it, it leaves with it
+                   [0.2, 0.8, 0.0],      # already leaving faster than the surface
+                   [0.0, -1.0, 0.0]])    # falling onto it
+    v = wp.array(v0, dtype=wp.vec3)
+    acc = wp.array(np.tile([0.0, 2e-3, 0.0], (3, 1)), dtype=wp.vec3)
+    cnt = wp.array(np.array([2, 2, 2], dtype=np.int32), dtype=int)
+    moved = wp.array(np.tile(2.0 * up, (3, 1)), dtype=wp.vec3)
+    wp.launch(inelastic_apply_kernel, 3, [x, v, acc, cnt, moved, 1.0 / dt])
+    np.testing.assert_allclose(v.numpy(), [[0.0, 0.5, 0.0], [0.2, 0.8, 0.0], [0.0, 0.5, 0.0]],
+                               atol=1e-6)
+    assert not moved.numpy().any()
 
 
 def _two_sheets(gap, res=6, **model_args):

@@ -585,6 +585,7 @@ class SelfCollision:
         self.capacity = int(capacity or 16 * (n + self.broad.num_edges))
         self.record = make_record(self.capacity, d)
         self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
+        self._no_moved = wp.zeros(0, dtype=wp.vec3, device=d)  # its layers do not move apart
         self.cnt = wp.zeros(n, dtype=int, device=d)
         self.threads = record_threads(self.capacity, self.device)
         # per step: STAT_KEYS
@@ -864,16 +865,16 @@ class SelfCollision:
         responses of a span (`CollisionStage.plan`, whose `span_step_kernel` applies it)."""
         wp.launch(jacobi_project_kernel, self.threads,
                   [self.record, 0, state.x, self.model.inv_mass, self.acc, self.cnt, self._held,
-                   0.01 * self.thickness, self.threads], device=self.device)
+                   0.01 * self.thickness, self.threads, self._no_moved], device=self.device)
 
     def _project(self, state, dt):
         m, d = self.model, self.device
         for _ in range(self.iterations):
             wp.launch(jacobi_project_kernel, self.threads,
                       [self.record, 0, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
-                       0.01 * self.thickness, self.threads], device=d)
+                       0.01 * self.thickness, self.threads, self._no_moved], device=d)
             wp.launch(inelastic_apply_kernel, m.num_vertices,
-                      [state.x, state.v, self.acc, self.cnt], device=d)
+                      [state.x, state.v, self.acc, self.cnt, self._no_moved, 0.0], device=d)
 
     def resolve(self, state, x_start, dt: float, steps=None) -> None:
         """Rounds of detection and response on ``x_start -> state.x``, then the impact zones.
