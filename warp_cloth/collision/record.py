@@ -15,8 +15,10 @@ with up to four cloth vertices ``v_j`` (``-1``: unused) and weights ``w_j``:
   triangle, ``(1 - a, a, -(1 - b), -b)`` for two edges), so a solver that consumes the record
   needs nothing new for them.
 
-Beside the constraint each entry carries what a response needs: ``ref`` (the start position
-carried by the obstacle's motion over the step, for friction), ``friction`` (mu_T),
+Beside the constraint each entry carries what a response needs: ``ref`` (vertex-obstacle
+entries: the start position carried by the obstacle's motion over the step, for friction; mesh
+feature entries: the constraint plane's point at the step's start, so ``offset - n . ref`` is
+how far the obstacle moved the plane, `features.inelastic_apply_kernel`), ``friction`` (mu_T),
 ``restitution`` (mu_N), ``source`` (the obstacle index, or -1) and ``kind``. The record has a
 fixed ``capacity`` (allocated once); ``count[0]`` is the number of entries written, and an entry
 past the capacity is not written but counted in ``overflow[0]`` (read by `CollisionStage.stats`:
@@ -47,7 +49,7 @@ class ContactRecord:
     weight: wp.array(dtype=wp.vec4)  # w_j
     normal: wp.array(dtype=wp.vec3)  # unit normal n (world frame, end of step)
     offset: wp.array(dtype=float)  # g = n . sum w_j x_j - offset
-    ref: wp.array(dtype=wp.vec3)  # reference point for friction (vertex-obstacle)
+    ref: wp.array(dtype=wp.vec3)  # friction's reference point / a feature plane's start
     friction: wp.array(dtype=float)  # mu_T
     restitution: wp.array(dtype=float)  # mu_N
     source: wp.array(dtype=int)  # obstacle index, or -1
