@@ -147,3 +147,37 @@ def test_cg_fused_and_generic_paths_agree(system):
     assert out[0][0] == out[1][0]
     assert np.allclose(out[0][1], out[1][1], atol=1e-6 * np.abs(xs).max())
     assert np.abs(out[0][1] - xs).max() < 1e-3 * np.abs(xs).max()
+
+
+def test_folded_constant_term_equals_its_own_product():
+    """A constant-Hessian term (quadratic bending) is folded into the operator's scalar rows:
+    the operator equals springs + mass + ``dense_q (x) I_3``, its diagonal holds the term's
+    diagonal, and CG runs the fused two-launch path (no extra term left) to the dense solution."""
+    from warp_cloth.forces.bending import QuadraticBending
+
+    m = hanging_model(res=5, bending="quadratic", bend_stiffness=0.05, device="cpu")
+    term = next(t for t in m.force_terms if isinstance(t, QuadraticBending))
+    A = SpringSystemOperator(m, mass_scale=900.0, extra=[term])
+    assert A.folded == [term] and A.extra == []
+    A.fill_laplacian()
+    A.update()
+    n = m.num_vertices
+    ref = np.kron(np.diag(900.0 * m.masses) + term.dense_q(), np.eye(3))
+    for (i, j), k in zip(m.spring_pairs, m.spring_stiffness):
+        for a, b_, s in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
+            ref[3 * a:3 * a + 3, 3 * b_:3 * b_ + 3] += s * k * np.eye(3)
+    D = dense_matrix(A)
+    assert np.abs(term.dense_q()).max() > 1e-2 * np.abs(ref).max()  # the term matters here
+    assert np.allclose(D, ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
+    for i in range(n):
+        assert np.allclose(A.diag.numpy()[i], ref[3 * i:3 * i + 3, 3 * i:3 * i + 3], rtol=1e-5)
+    free = m.inverse_masses > 0
+    f3 = np.repeat(free, 3)
+    b = np.random.default_rng(2).standard_normal((n, 3)) * free[:, None]
+    xs = np.zeros(3 * n)
+    xs[f3] = np.linalg.solve(ref[np.ix_(f3, f3)], b.reshape(-1)[f3])
+    x = wp.zeros(n, dtype=wp.vec3)
+    info = make_linear_solver("cg", iterations=500, tolerance=1e-6).solve(
+        A, wp.array(b, dtype=wp.vec3), x)
+    assert info["converged"]
+    assert np.abs(x.numpy().reshape(-1) - xs).max() < 1e-3 * np.abs(xs).max()

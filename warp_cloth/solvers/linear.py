@@ -382,28 +382,38 @@ def spring_block_matrix(c: wp.vec4):
 @wp.func
 def spring_row_apply(x: wp.array(dtype=wp.vec3), i: int, scale: float, mass: wp.array(dtype=float),
                      offsets: wp.array(dtype=wp.int32), other: wp.array(dtype=wp.int32),
-                     coef: wp.array(dtype=wp.vec4)):
-    """Row i of ``A x`` (mass and springs): ``s m_i x_i + sum_{e=(i,j)} H_e (x_i - x_j)``."""
+                     coef: wp.array(dtype=wp.vec4), s_offsets: wp.array(dtype=wp.int32),
+                     s_cols: wp.array(dtype=wp.int32), s_vals: wp.array(dtype=float)):
+    """Row i of ``A x``: mass and springs, ``s m_i x_i + sum_{e=(i,j)} H_e (x_i - x_j)``, plus
+    the folded constant scalar rows ``sum_j S_ij x_j`` (`SpringSystemOperator`; none: empty
+    rows)."""
     xi = x[i]
     acc = (scale * mass[i]) * xi
     for q in range(offsets[i], offsets[i + 1]):
         acc = acc + spring_block_apply(coef[q], xi - x[other[q]])
+    for q in range(s_offsets[i], s_offsets[i + 1]):
+        acc = acc + s_vals[q] * x[s_cols[q]]
     return acc
 
 
 @wp.kernel
 def _spring_matvec_kernel(x: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), scale: float,
                           offsets: wp.array(dtype=wp.int32), other: wp.array(dtype=wp.int32),
-                          coef: wp.array(dtype=wp.vec4), out: wp.array(dtype=wp.vec3)):
-    """out = A x (mass + springs), one thread per vertex gathering its CSR row (no atomics)."""
+                          coef: wp.array(dtype=wp.vec4), s_offsets: wp.array(dtype=wp.int32),
+                          s_cols: wp.array(dtype=wp.int32), s_vals: wp.array(dtype=float),
+                          out: wp.array(dtype=wp.vec3)):
+    """out = A x (mass + springs + folded rows), one thread per vertex gathering its CSR rows
+    (no atomics)."""
     i = wp.tid()
-    out[i] = spring_row_apply(x, i, scale, mass, offsets, other, coef)
+    out[i] = spring_row_apply(x, i, scale, mass, offsets, other, coef, s_offsets, s_cols, s_vals)
 
 
 @wp.kernel
 def _spring_cg_direction_kernel(z: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
                                 scale: float, offsets: wp.array(dtype=wp.int32),
                                 other: wp.array(dtype=wp.int32), coef: wp.array(dtype=wp.vec4),
+                                s_offsets: wp.array(dtype=wp.int32),
+                                s_cols: wp.array(dtype=wp.int32), s_vals: wp.array(dtype=float),
                                 free: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
                                 ap: wp.array(dtype=wp.vec3), rz: wp.array(dtype=wp.float64),
                                 pap: wp.array(dtype=wp.float64), k: int):
@@ -412,7 +422,7 @@ def _spring_cg_direction_kernel(z: wp.array(dtype=wp.vec3), mass: wp.array(dtype
     matvec); pAp_k = p . Ap (free vertices)."""
     i = wp.tid()
     pi = z[i]
-    api = spring_row_apply(z, i, scale, mass, offsets, other, coef)
+    api = spring_row_apply(z, i, scale, mass, offsets, other, coef, s_offsets, s_cols, s_vals)
     if k > 0:
         beta = _cg_beta(rz, k)
         pi = pi + beta * p[i]
@@ -426,24 +436,30 @@ def _spring_cg_direction_kernel(z: wp.array(dtype=wp.vec3), mass: wp.array(dtype
 def _spring_matvec_vb_kernel(x: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
                              scale: float, offsets: wp.array(dtype=wp.int32),
                              other: wp.array(dtype=wp.int32), coef: wp.array(dtype=wp.vec4),
-                             vblock: wp.array(dtype=wp.mat33), out: wp.array(dtype=wp.vec3)):
+                             s_offsets: wp.array(dtype=wp.int32), s_cols: wp.array(dtype=wp.int32),
+                             s_vals: wp.array(dtype=float), vblock: wp.array(dtype=wp.mat33),
+                             out: wp.array(dtype=wp.vec3)):
     """`_spring_matvec_kernel` plus a per-vertex block (the contact term's Hessian)."""
     i = wp.tid()
-    out[i] = spring_row_apply(x, i, scale, mass, offsets, other, coef) + vblock[i] * x[i]
+    out[i] = (spring_row_apply(x, i, scale, mass, offsets, other, coef, s_offsets, s_cols, s_vals)
+              + vblock[i] * x[i])
 
 
 @wp.kernel
 def _spring_cg_direction_vb_kernel(z: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
                                    scale: float, offsets: wp.array(dtype=wp.int32),
                                    other: wp.array(dtype=wp.int32),
-                                   coef: wp.array(dtype=wp.vec4), vblock: wp.array(dtype=wp.mat33),
+                                   coef: wp.array(dtype=wp.vec4), s_offsets: wp.array(dtype=wp.int32),
+                                   s_cols: wp.array(dtype=wp.int32), s_vals: wp.array(dtype=float),
+                                   vblock: wp.array(dtype=wp.mat33),
                                    free: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
                                    ap: wp.array(dtype=wp.vec3), rz: wp.array(dtype=wp.float64),
                                    pap: wp.array(dtype=wp.float64), k: int):
     """`_spring_cg_direction_kernel` plus a per-vertex block (the contact term's Hessian)."""
     i = wp.tid()
     pi = z[i]
-    api = spring_row_apply(z, i, scale, mass, offsets, other, coef) + vblock[i] * pi
+    api = (spring_row_apply(z, i, scale, mass, offsets, other, coef, s_offsets, s_cols, s_vals)
+           + vblock[i] * pi)
     if k > 0:
         beta = _cg_beta(rz, k)
         pi = pi + beta * p[i]
@@ -528,6 +544,11 @@ class SpringSystemOperator:
     array (``mat33``, written with atomics).
 
     ``extra`` terms (e.g. bending) provide ``matvec_add(x, out)`` and ``add_diagonal(diag)``.
+    Those with a constant scalar Hessian ``S (x) I_3`` (quadratic bending: ``scalar_entries``)
+    are *folded*: their entries become a scalar CSR (``s_offsets``, ``s_cols``, ``s_vals``,
+    duplicates summed) gathered in the same launch as the springs, so CG keeps its fused
+    two-launch iteration (on the 2,500-vertex twist the per-quad product with atomics and the
+    unfused direction cost more than the spring rows); they still add their own diagonal.
     ``vertex_blocks`` (None, or a ``mat33`` array per vertex) adds a block-diagonal term inside
     the same gather (the contact term of `warp_cloth.solvers.contact_coupling`; its owner also
     adds it to ``diag``). Call `update` after changing the blocks, the extra terms or
@@ -555,6 +576,32 @@ class SpringSystemOperator:
         free = (model.inverse_masses > 0).astype(np.float32)
         self.free = wp.array(free, dtype=wp.float32, device=d)
         self.vertex_blocks = None
+        self.folded = [t for t in self.extra if hasattr(t, "scalar_entries")]
+        self.extra = [t for t in self.extra if not hasattr(t, "scalar_entries")]
+        self._fold(self.folded)
+
+    def _fold(self, terms):
+        """The scalar CSR of the folded terms' entries (rows sorted, duplicates summed)."""
+        n, d = self.n, self.device
+        ent = [t.scalar_entries() for t in terms]
+        rows = np.concatenate([e[0] for e in ent] + [np.zeros(0, np.int64)]).astype(np.int64)
+        cols = np.concatenate([e[1] for e in ent] + [np.zeros(0, np.int64)]).astype(np.int64)
+        vals = np.concatenate([e[2] for e in ent] + [np.zeros(0)]).astype(np.float64)
+        key, inv = np.unique(rows * n + cols, return_inverse=True)  # by row, then column
+        vals = np.bincount(inv.ravel(), weights=vals, minlength=len(key)) if len(key) else vals
+        rows, cols = key // max(n, 1), key % max(n, 1)
+        offsets = np.zeros(n + 1, dtype=np.int32)
+        if len(rows):
+            offsets[1:] = np.cumsum(np.bincount(rows, minlength=n))
+        self.s_offsets = wp.array(offsets, dtype=wp.int32, device=d)
+        self.s_cols = wp.array(cols.astype(np.int32) if len(cols) else np.zeros(1, np.int32),
+                               dtype=wp.int32, device=d)
+        self.s_vals = wp.array(vals.astype(np.float32) if len(vals) else np.zeros(1, np.float32),
+                               dtype=wp.float32, device=d)
+
+    def _rows(self):
+        """The launch arguments of the row gathers after ``scale``."""
+        return [self.offsets, self.other, self.coef, self.s_offsets, self.s_cols, self.s_vals]
 
     def fill_laplacian(self):
         """``H_e = k_e I`` for every spring (the projective-dynamics / Liu 2013 matrix)."""
@@ -576,7 +623,7 @@ class SpringSystemOperator:
             self.mass_scale = float(mass_scale)
         m, d = self.model, self.device
         wp.launch(_diag_init_kernel, self.n, [m.mass, self.mass_scale, self.diag], device=d)
-        for t in self.extra:
+        for t in self.folded + self.extra:
             t.add_diagonal(self.diag)
         wp.launch(_diag_finish_kernel, self.n,
                   [self.offsets, self.coef, self.free, self.diag, self.diag_inv], device=d)
@@ -585,12 +632,11 @@ class SpringSystemOperator:
         m, d = self.model, self.device
         if self.vertex_blocks is not None:
             wp.launch(_spring_matvec_vb_kernel, self.n,
-                      [x, m.mass, self.mass_scale, self.offsets, self.other, self.coef,
-                       self.vertex_blocks, out], device=d)
+                      [x, m.mass, self.mass_scale, *self._rows(), self.vertex_blocks, out],
+                      device=d)
         else:
             wp.launch(_spring_matvec_kernel, self.n,
-                      [x, m.mass, self.mass_scale, self.offsets, self.other, self.coef, out],
-                      device=d)
+                      [x, m.mass, self.mass_scale, *self._rows(), out], device=d)
         for t in self.extra:
             t.matvec_add(x, out)
 
@@ -601,12 +647,12 @@ class SpringSystemOperator:
             return False
         if self.vertex_blocks is not None:
             wp.launch(_spring_cg_direction_vb_kernel, self.n,
-                      [z, self.model.mass, self.mass_scale, self.offsets, self.other, self.coef,
-                       self.vertex_blocks, self.free, p, ap, rz, pap, k], device=self.device)
+                      [z, self.model.mass, self.mass_scale, *self._rows(), self.vertex_blocks,
+                       self.free, p, ap, rz, pap, k], device=self.device)
             return True
         wp.launch(_spring_cg_direction_kernel, self.n,
-                  [z, self.model.mass, self.mass_scale, self.offsets, self.other, self.coef,
-                   self.free, p, ap, rz, pap, k], device=self.device)
+                  [z, self.model.mass, self.mass_scale, *self._rows(), self.free, p, ap, rz,
+                   pap, k], device=self.device)
         return True
 
 
