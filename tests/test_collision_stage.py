@@ -456,6 +456,73 @@ def test_sharp_features_are_the_edges_a_cloth_edge_can_cut():
     assert len(sharp_features(quad.vertices, quad.triangles, 0.05, 0.005)[0]) == 4  # the rim
 
 
+def _cone(r, h, segments):
+    """A closed cone (apex index ``segments``, up +y) with outward windings."""
+    from warp_cloth import TriMesh
+
+    a = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
+    v = np.concatenate([np.stack([r * np.cos(a), 0.0 * a, r * np.sin(a)], 1),
+                        [[0.0, h, 0.0], [0.0, 0.0, 0.0]]])
+    f = []
+    for j in range(segments):
+        f += [(segments, (j + 1) % segments, j), (segments + 1, j, (j + 1) % segments)]
+    f = np.array(f)
+    vol = np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum()
+    return TriMesh(v, f if vol > 0 else f[:, ::-1].copy(), name="spike")
+
+
+def test_a_spike_tip_is_a_sharp_feature():
+    """A cone's tip (a convex vertex with a large angle defect) is kept with every edge at it,
+    though its faces' centroids lie where the cone is wide; a low, wide cone's tip is not."""
+    from warp_cloth.collision.features import sharp_features
+
+    spike = _cone(0.05, 0.4, 24)
+    e, v = sharp_features(spike.vertices, spike.triangles, 0.034, 0.005)
+    tip = 24
+    assert tip in set(v.tolist())
+    at_tip = {tuple(sorted(p)) for p in e.tolist() if tip in p}
+    assert at_tip == {(j, tip) for j in range(24)}
+    low = _cone(0.3, 0.02, 24)  # a 4 degree slope: a 3.4 cm edge over its tip dips 1 mm
+    e, v = sharp_features(low.vertices, low.triangles, 0.034, 0.005)
+    assert 24 not in set(v.tolist())
+
+
+def test_feature_response_rounds_go_on_until_every_entry_holds():
+    """A patch of cloth dropped 3 cm through a spike's tip in one step (its middle edges
+    straddling the tip): two dozen edge-edge entries of nearly opposite normals meet there, and
+    a fixed four Jacobi rounds left some of them violated (a cloth edge on a PBD sheet later
+    slid through a spike from such a state). The response goes on until every entry holds to
+    `RESOLVE_TOL` of the thickness, counts its rounds, and no cloth edge crosses the spike."""
+    from warp_cloth import ClothModel, TriMesh
+    from warp_cloth.collision import MeshObstacle
+    from warp_cloth.collision.check import mesh_edge_crossings
+    from warp_cloth.collision.features import RESOLVE_TOL
+
+    mesh = TriMesh.grid(4, 4, size=0.12, plane="xz", origin=(-0.0585, 0.41, -0.0595))
+    model = ClothModel(mesh, density=0.15, stretch_stiffness=1000.0, device="cpu")
+    ob = MeshObstacle(_cone(0.05, 0.4, 24))
+    stage = CollisionStage(model, [ob], thickness=0.005)
+    st = model.state()
+    x0 = st.positions()
+    x1 = x0 - np.array([0.0, 0.03, 0.0])
+    assert mesh_edge_crossings(ob, x1, mesh.edges, 0.0).sum() > 0  # the path goes through
+    st.x.assign(x1)
+    stage.resolve(st, wp.array(x0, dtype=wp.vec3), 1.0 / 600.0)
+    x = st.positions()
+    assert mesh_edge_crossings(ob, x, mesh.edges, 0.0).sum() == 0
+    rec = stage.pair_record
+    k = int(rec.count.numpy()[0])
+    assert k > 24
+    vid, w = rec.vertex.numpy()[:k], rec.weight.numpy()[:k]
+    n, off = rec.normal.numpy()[:k], rec.offset.numpy()[:k]
+    g = np.array([sum(w[e, j] * n[e] @ x[vid[e, j]] for j in range(4) if vid[e, j] >= 0)
+                  - off[e] for e in range(k)])
+    assert g.min() >= -RESOLVE_TOL * 0.005 - 1e-7, f"an entry is violated by {-g.min():.2e} m"
+    s = stage.stats
+    assert s["feature_unresolved_total"] == 0 and s["feature_rounds"] > 4
+    assert stage.frame_end() == []
+
+
 def test_mesh_edge_crossings_checker():
     from warp_cloth.collision import MeshObstacle
     from warp_cloth.collision.check import mesh_edge_crossings

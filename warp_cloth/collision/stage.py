@@ -275,10 +275,12 @@ class CollisionStage:
     # ------------------------------------------------------------------ reports
     def frame_end(self) -> list:
         """Called by the runner after each frame (host reads): ``(message, regrown)`` for each
-        thing to report: self-collision steps that returned the whole cloth to its start, and
-        contacts dropped for want of room (the record then doubles: ``regrown`` True, so a
+        thing to report: responses to mesh features that ended still violated, self-collision
+        steps that returned the whole cloth to its start, and contacts dropped for want of room (the record then doubles: ``regrown`` True, so a
         recorded graph must be recorded again)."""
-        out = [] if self.self_collision is None else self.self_collision.frame_end()
+        out = self.features.frame_end()
+        if self.self_collision is not None:
+            out += self.self_collision.frame_end()
         coupling = getattr(self, "solve_coupling", None)  # self-contacts inside a solve
         if coupling is not None:
             out += coupling.self_frame_end()
@@ -294,6 +296,7 @@ class CollisionStage:
             pc = int(self.pair_record.count.numpy()[0])
             out["feature_contacts"] = min(pc, self.pair_record.vertex.shape[0])
             out["contact_overflow"] += int(self.pair_record.overflow.numpy()[0])
+            out.update(self.features.stats)
         if self.self_collision is not None:
             out.update(self.self_collision.stats)
         return out
