@@ -104,8 +104,9 @@ def test_self_collision_alone_and_its_arguments():
 
 def test_default_fold_on_the_floor_stays_above_it():
     """The README's figures: the default fold (lifted 100 degrees) never passes through itself,
-    and the layer under the other stays above the floor (within two thirds of the thickness
-    of the thickness: self-collision's response runs after obstacle contact)."""
+    and the layer under the other stays the thickness above the floor (less 1e-4 m, the
+    stage's promise): self-collision's response, which splits its corrections between the
+    layers, pushed it down to 4.6 mm of the 5 here before vertex contact ran again after it."""
     from warp_cloth.collision.check import SelfIntersectionChecker
 
     scene = fold(solver="implicit", res=12, frames=75, size=0.6)
@@ -120,7 +121,7 @@ def test_default_fold_on_the_floor_stays_above_it():
     scene.run(None, quiet=True, energy=False, on_frame=on_frame)
     th = scene.collision.thickness
     assert max(crossings) == 0
-    assert min(low) > th / 3.0 - 1e-4
+    assert min(low) >= th - 1e-4, f"a vertex {min(low) * 1e3:.2f} mm above the floor"
     assert scene.state.positions()[:, 1].max() < 0.1  # folded
 
 

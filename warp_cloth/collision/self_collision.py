@@ -817,11 +817,15 @@ class SelfCollision:
                       [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._moved,
                        self._allow], device=d)
 
-    def step(self, state, x_start, dt: float) -> None:
+    def step(self, state, x_start, dt: float, after=None) -> None:
         """Self-collision after one solver step: `resolve` every step, or once per span
-        (`plan`), with the last response's contacts held in between (`hold`)."""
+        (`plan`), with the last response's contacts held in between (`hold`). ``after``: a
+        callable run after each response (inside the span's conditional branch: the
+        collision stage's vertex contact once more)."""
         if self.frame_steps is None:
             self.resolve(state, x_start, dt)
+            if after is not None:
+                after()
             return
         start, steps, flag = self._span
         d = self.device
@@ -835,9 +839,9 @@ class SelfCollision:
         wp.launch(span_step_kernel, len(start), [state.x, state.v, self.acc, self.cnt, start,
                                                  self._reach, self._allow, int(last), steps,
                                                  flag], device=d)
-        wp.capture_if(flag, self._span_resolve, state=state, dt=dt)
+        wp.capture_if(flag, self._span_resolve, state=state, dt=dt, after=after)
 
-    def _span_resolve(self, state, dt):
+    def _span_resolve(self, state, dt, after=None):
         start, steps, flag = self._span
         # the detections may use the allowances (the BVH broad phase has the vertices' BVH)
         self._in_span = self.allowances and self.broad.method == "bvh"
@@ -858,6 +862,8 @@ class SelfCollision:
             self.clear(state.x)
         wp.launch(span_begin_kernel, len(start), [state.x, start, steps, flag],
                   device=self.device)
+        if after is not None:
+            after()
 
     def hold(self, state) -> None:
         """One Jacobi projection of the contacts the last `resolve` found (no detection), into
