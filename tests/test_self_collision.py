@@ -342,16 +342,18 @@ def test_impact_zone_with_pins_follows_their_rigid_motion():
 def test_weak_projection_falls_back_on_impact_zones_not_crossings():
     """With one round of one Jacobi iteration the projection leaves contacts unresolved: the
     rigid impact zones take them (counted, without the whole-cloth return), and no frame has a
-    crossing. One PD step a frame: with the inelastic velocity rule of the response, the
-    smaller steps of the default 3 leave the single iteration nothing it cannot resolve."""
+    crossing. Two sheets dropped onto a sphere, one PD step a frame (a fold no longer reaches
+    the zones: since vertex contact runs inside the rounds, its floor no longer pushes the
+    lower layer back into the upper one)."""
     from warp_cloth.collision.check import SelfIntersectionChecker
     from warp_cloth.collision.self_collision import SelfCollision
+    from warp_cloth.contact_scenes import stack
 
-    scene = fold(solver="pd", res=10, frames=50, size=0.6, angle=150.0, substeps=1)
+    scene = stack(solver="pd", res=8, sheets=2, frames=60, substeps=1)
     m = scene.model
     sc = scene.collision.self_collision
     scene.collision.self_collision = SelfCollision(m, sc.thickness, rounds=1, iterations=1)
-    # self-contacts after the solve only: inside it, PD alone keeps this fold apart and the
+    # self-contacts after the solve only: inside it, PD alone keeps the layers apart and the
     # zones are never reached
     scene.collision.self_in_solve = False
     chk = SelfIntersectionChecker(m.mesh.triangles, m.mesh.edges, m.num_vertices)
@@ -361,6 +363,29 @@ def test_weak_projection_falls_back_on_impact_zones_not_crossings():
     assert st["self_zones_total"] > 0 and st["self_zone_vertices_total"] >= 2
     assert st["self_fallback_all_total"] == 0
     assert max(crossings) == 0
+
+
+def test_obstacle_contact_inside_the_rounds_pushes_no_layer_through_another():
+    """Vertex contact runs inside the self-collision rounds (the projection may push a layer
+    lying on an obstacle into it), each followed by a fresh detection. Run once after the
+    response instead, it pushed sheets lying on each other through each other: three sheets on
+    a sphere under a deliberately weak projection (one round of one iteration) had crossings
+    in 12 frames. Here: none (the weak rounds fall back on the impact zones and the
+    whole-cloth return often; those are not followed by vertex contact)."""
+    from warp_cloth.collision.check import SelfIntersectionChecker
+    from warp_cloth.collision.self_collision import SelfCollision
+    from warp_cloth.contact_scenes import stack
+
+    scene = stack(solver="pd", res=8, frames=60)
+    m = scene.model
+    sc = scene.collision.self_collision
+    scene.collision.self_collision = SelfCollision(m, sc.thickness, rounds=1, iterations=1)
+    scene.collision.self_in_solve = False
+    chk = SelfIntersectionChecker(m.mesh.triangles, m.mesh.edges, m.num_vertices)
+    crossings = []
+    scene.run(None, quiet=True, energy=False, on_frame=lambda f, st: crossings.append(chk(st.x)))
+    assert max(crossings) == 0, f"crossings in {sum(c > 0 for c in crossings)} frames"
+    assert scene.collision.stats["self_zones_total"] > 0  # the layers did press together
 
 
 def test_run_counts_crossings_and_cli_exit_status(tmp_path, capsys):
@@ -419,11 +444,14 @@ def test_solve_self_contacts_overflow_is_reported_and_regrows(capsys):
 def test_self_contacts_inside_the_solve_keep_a_fold_calm(solver_name):
     """Self-contacts as penalty terms of the implicit and projective solves (the stage's
     default ``self_in_solve``): the fold (16 x 16, 90 frames) gains at most 2 mJ in any frame
-    and stretches under 1.5 %, without crossings; with the self-contacts only after the solve,
+    and stretches under 2 %, without crossings; with the self-contacts only after the solve,
     the solve pushes the layers into each other every step and the response pushes them apart
     (measured with the inelastic response: +23 mJ in a frame and 2.6 % with pd, +0.40 J and
-    2.8 % with implicit; in solve 0.19 / 0.23 mJ, 0.33 / 0.31 %). (On a 12 x 12 fold of 0.6 m
-    the response alone is as calm since its velocity rule became inelastic.)"""
+    2.8 % with implicit; in solve 0.19 / 0.23 mJ, 0.33 / 0.31 %; since the floor holds the
+    lower layer inside the response's rounds, the upper one takes the whole correction where
+    the half lands: implicit 1.53 % in that frame, against 0.53 % when the lower layer could be
+    pushed into the floor). (On a 12 x 12 fold of 0.6 m the response alone is as calm since its
+    velocity rule became inelastic.)"""
     from warp_cloth.diagnostics import Meter
 
     out = {}
@@ -435,7 +463,7 @@ def test_self_contacts_inside_the_solve_keep_a_fold_calm(solver_name):
                       on_frame=lambda f, st: E.append(meter(st).energy))
         out[ins] = (float(np.diff(E).max()), r.max_strain, r.crossing_frames)
     rise, strain, crossings = out[True]
-    assert rise < 2e-3 and strain < 0.015 and crossings == 0, out
+    assert rise < 2e-3 and strain < 0.02 and crossings == 0, out
     assert out[False][0] > 5 * rise, out  # the same fold, self-contacts after the solve only
 
 

@@ -817,15 +817,15 @@ class SelfCollision:
                       [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._moved,
                        self._allow], device=d)
 
-    def step(self, state, x_start, dt: float, after=None) -> None:
+    def step(self, state, x_start, dt: float, obstacles=None) -> None:
         """Self-collision after one solver step: `resolve` every step, or once per span
-        (`plan`), with the last response's contacts held in between (`hold`). ``after``: a
-        callable run after each response (inside the span's conditional branch: the
-        collision stage's vertex contact once more)."""
+        (`plan`), with the last response's contacts held in between (`hold`). ``obstacles``:
+        a callable that keeps the vertices out of the obstacles (the collision stage's vertex
+        contact on this step's path), run inside every round after its projection, so that the
+        next round's detection sees what it moved (`_round`)."""
+        self._obstacles = obstacles
         if self.frame_steps is None:
             self.resolve(state, x_start, dt)
-            if after is not None:
-                after()
             return
         start, steps, flag = self._span
         d = self.device
@@ -839,9 +839,9 @@ class SelfCollision:
         wp.launch(span_step_kernel, len(start), [state.x, state.v, self.acc, self.cnt, start,
                                                  self._reach, self._allow, int(last), steps,
                                                  flag], device=d)
-        wp.capture_if(flag, self._span_resolve, state=state, dt=dt, after=after)
+        wp.capture_if(flag, self._span_resolve, state=state, dt=dt)
 
-    def _span_resolve(self, state, dt, after=None):
+    def _span_resolve(self, state, dt):
         start, steps, flag = self._span
         # the detections may use the allowances (the BVH broad phase has the vertices' BVH)
         self._in_span = self.allowances and self.broad.method == "bvh"
@@ -862,8 +862,6 @@ class SelfCollision:
             self.clear(state.x)
         wp.launch(span_begin_kernel, len(start), [state.x, start, steps, flag],
                   device=self.device)
-        if after is not None:
-            after()
 
     def hold(self, state) -> None:
         """One Jacobi projection of the contacts the last `resolve` found (no detection), into
@@ -901,11 +899,20 @@ class SelfCollision:
                       steps=steps)
         wp.launch(accumulate_kernel, len(STAT_KEYS), [self.counters, self.totals], device=d)
 
+    #: `step`'s ``obstacles`` callable (None: no obstacles)
+    _obstacles = None
+
     def _round(self, state, x_start, dt):
         self.record.count.zero_()
         self.record.overflow.zero_()
         self.detect(x_start, state.x, self._gap, self.record, self.done)
         self._project(state, dt)
+        if self._obstacles is not None:
+            # the projection splits a pair's correction between its layers and can push a
+            # layer lying on an obstacle into it; pushed back out here, the next round's
+            # detection checks the layers again. A round whose projection moved nothing
+            # (the last) leaves nothing for this to move: the rounds end clear of both
+            self._obstacles()
         wp.launch(round_end_kernel, 1, [self.record, self.violated, self.done, self.counters,
                                         self._flags, self.rounds], device=self.device)
 
