@@ -339,26 +339,32 @@ def test_impact_zone_with_pins_follows_their_rigid_motion():
     np.testing.assert_allclose(x[3], x0[3] @ R.T + [0.01, 0, 0], atol=5e-4)
 
 
+def _weak_stack(**stack_args):
+    """``stack`` under PD with a deliberately weak self-collision projection (one round of one
+    Jacobi iteration) and the self-contacts after the solve only (inside it, PD alone keeps the
+    layers apart and the fall-backs are never reached): (scene, crossings per frame)."""
+    from warp_cloth.collision.check import SelfIntersectionChecker
+    from warp_cloth.collision.self_collision import SelfCollision
+    from warp_cloth.contact_scenes import stack
+
+    scene = stack(solver="pd", res=8, frames=60, **stack_args)
+    m = scene.model
+    sc = scene.collision.self_collision
+    scene.collision.self_collision = SelfCollision(m, sc.thickness, rounds=1, iterations=1)
+    scene.collision.self_in_solve = False
+    chk = SelfIntersectionChecker(m.mesh.triangles, m.mesh.edges, m.num_vertices)
+    crossings = []
+    scene.run(None, quiet=True, energy=False, on_frame=lambda f, st: crossings.append(chk(st.x)))
+    return scene, crossings
+
+
 def test_weak_projection_falls_back_on_impact_zones_not_crossings():
     """With one round of one Jacobi iteration the projection leaves contacts unresolved: the
     rigid impact zones take them (counted, without the whole-cloth return), and no frame has a
     crossing. Two sheets dropped onto a sphere, one PD step a frame (a fold no longer reaches
     the zones: since vertex contact runs inside the rounds, its floor no longer pushes the
     lower layer back into the upper one)."""
-    from warp_cloth.collision.check import SelfIntersectionChecker
-    from warp_cloth.collision.self_collision import SelfCollision
-    from warp_cloth.contact_scenes import stack
-
-    scene = stack(solver="pd", res=8, sheets=2, frames=60, substeps=1)
-    m = scene.model
-    sc = scene.collision.self_collision
-    scene.collision.self_collision = SelfCollision(m, sc.thickness, rounds=1, iterations=1)
-    # self-contacts after the solve only: inside it, PD alone keeps the layers apart and the
-    # zones are never reached
-    scene.collision.self_in_solve = False
-    chk = SelfIntersectionChecker(m.mesh.triangles, m.mesh.edges, m.num_vertices)
-    crossings = []
-    scene.run(None, quiet=True, energy=False, on_frame=lambda f, st: crossings.append(chk(st.x)))
+    scene, crossings = _weak_stack(sheets=2, substeps=1)
     st = scene.collision.stats
     assert st["self_zones_total"] > 0 and st["self_zone_vertices_total"] >= 2
     assert st["self_fallback_all_total"] == 0
@@ -369,21 +375,9 @@ def test_obstacle_contact_inside_the_rounds_pushes_no_layer_through_another():
     """Vertex contact runs inside the self-collision rounds (the projection may push a layer
     lying on an obstacle into it), each followed by a fresh detection. Run once after the
     response instead, it pushed sheets lying on each other through each other: three sheets on
-    a sphere under a deliberately weak projection (one round of one iteration) had crossings
-    in 12 frames. Here: none (the weak rounds fall back on the impact zones and the
-    whole-cloth return often; those are not followed by vertex contact)."""
-    from warp_cloth.collision.check import SelfIntersectionChecker
-    from warp_cloth.collision.self_collision import SelfCollision
-    from warp_cloth.contact_scenes import stack
-
-    scene = stack(solver="pd", res=8, frames=60)
-    m = scene.model
-    sc = scene.collision.self_collision
-    scene.collision.self_collision = SelfCollision(m, sc.thickness, rounds=1, iterations=1)
-    scene.collision.self_in_solve = False
-    chk = SelfIntersectionChecker(m.mesh.triangles, m.mesh.edges, m.num_vertices)
-    crossings = []
-    scene.run(None, quiet=True, energy=False, on_frame=lambda f, st: crossings.append(chk(st.x)))
+    a sphere under the weak projection had crossings in 12 frames (and 94 whole-cloth
+    returns). Here: none."""
+    scene, crossings = _weak_stack()
     assert max(crossings) == 0, f"crossings in {sum(c > 0 for c in crossings)} frames"
     assert scene.collision.stats["self_zones_total"] > 0  # the layers did press together
 
