@@ -244,19 +244,19 @@ class CollisionStage:
             self.contact.apply(state, x_start, dt)
         if self.self_collision is not None:
             # after obstacle contact, whose projection can push one layer of a fold through
-            # another (measured: 88 crossing pairs on the fold). Every step, or once per span
-            # (`plan`)
-            # its projection splits corrections between the layers, so it pushed a layer lying
-            # on an obstacle into it (measured: 4.6 mm of a 5 mm thickness left on a fold,
-            # 0.31 mm of 2 mm under implicit Euler): vertex contact's position projection (on
-            # this step's path; it moves only the vertices it finds inside the thickness) runs
-            # inside each of its rounds, whose next detection sees what it moved. Run once after
-            # the response instead (`apply`), it pushed layers through each other (a stack of
-            # sheets under a deliberately weak projection: 12 frames with crossings), and
-            # `apply` inside the rounds applied friction once a round (a fold's landing
-            # stretched 2.2 %, 1.5 % with positions only). Between a span's responses `hold`
-            # pushes by one step's sinking at most; the impact zones and the whole-cloth return
-            # (the fall-backs) come after the rounds and are not followed by it
+            # another (measured: 88 crossing pairs on the fold); every step, or once per span
+            # (`plan`). Its own projection splits corrections between the layers, so it pushed
+            # a layer lying on an obstacle into it (measured: 4.6 mm of a 5 mm thickness left
+            # on a fold, 0.31 mm of 2 mm under implicit Euler): vertex contact's position
+            # projection (on this step's path; it moves only the vertices it finds inside the
+            # thickness) runs inside each of its rounds, whose next detection sees what it
+            # moved. Run once after the response instead (`apply`), it pushed layers through
+            # each other (a stack of sheets under a deliberately weak projection: 12 frames
+            # with crossings), and `apply` inside the rounds applied friction once a round (a
+            # fold's landing stretched 2.2 %, 1.5 % with positions only). Between a span's
+            # responses `hold` pushes by one step's sinking at most; the impact zones and the
+            # whole-cloth return (the fall-backs) come after the rounds and are not followed
+            # by it
             obstacles = None
             if self.contact is not None:
                 def obstacles():  # positions only: friction and restitution acted already
@@ -289,8 +289,9 @@ class CollisionStage:
     def frame_end(self) -> list:
         """Called by the runner after each frame (host reads): ``(message, regrown)`` for each
         thing to report: responses to mesh features that ended still violated, self-collision
-        steps that returned the whole cloth to its start, and contacts dropped for want of room (the record then doubles: ``regrown`` True, so a
-        recorded graph must be recorded again)."""
+        steps that returned the whole cloth to its start, and contacts dropped for want of room
+        (the record then doubles: ``regrown`` True, so a recorded graph must be recorded
+        again)."""
         out = self.features.frame_end()
         if self.self_collision is not None:
             out += self.self_collision.frame_end()
