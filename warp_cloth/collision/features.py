@@ -100,6 +100,9 @@ def sharp_features(vertices, triangles, length: float, thickness: float):
     start = np.flatnonzero(np.r_[True, (key[1:] != key[:-1]).any(axis=1)])
     count = np.diff(np.r_[start, len(key)])
     L, h = float(length), float(thickness)
+    open_v = np.zeros(len(v), dtype=bool)  # on a boundary or non-manifold edge
+    open_v[key[start[count != 2]].ravel()] = True
+    tips = _sharp_tips(v, t, L, h, open_v)
     sharp = []
     for s, c in zip(start, count):
         a, b = key[s]
@@ -112,23 +115,16 @@ def sharp_features(vertices, triangles, length: float, thickness: float):
         theta = math.acos(min(1.0, max(-1.0, float(n[f1] @ n[f2]))))
         ell = max(float(np.linalg.norm(cen[f1] - cen[f2])), 1e-12)
         dip = max(0.5 * L * math.sin(0.5 * theta), min(L * L * theta / (8.0 * ell), 0.5 * L))
-        if dip > 1.5 * h:
+        if dip > 1.5 * h or tips[a] or tips[b]:
             sharp.append((a, b))
-    tips = _sharp_tips(v, t, L, h)
-    if tips.any():
-        for s, c in zip(start, count):
-            a, b = key[s]
-            if c == 2 and (tips[a] or tips[b]):
-                f1 = face[s]
-                if float((v[opp[s + 1]] - v[a]) @ n[f1]) < 0.0:  # convex
-                    sharp.append((a, b))
-    edges = np.unique(np.asarray(sharp, dtype=np.int64).reshape(-1, 2), axis=0)
+    edges = np.asarray(sharp, dtype=np.int64).reshape(-1, 2)
     return edges, np.unique(edges)
 
 
-def _sharp_tips(v, t, L: float, h: float) -> np.ndarray:
+def _sharp_tips(v, t, L: float, h: float, open_v) -> np.ndarray:
     """Per vertex: a convex tip that a cloth edge of length ``L`` dips into by more than
-    ``1.5 h`` (`sharp_features`); only vertices whose every edge has two faces."""
+    ``1.5 h`` (`sharp_features`); not the vertices of ``open_v`` (on a boundary or
+    non-manifold edge, whose angle defect means nothing)."""
     nv = len(v)
     if not len(t):
         return np.zeros(nv, dtype=bool)
@@ -139,11 +135,6 @@ def _sharp_tips(v, t, L: float, h: float) -> np.ndarray:
         c = np.einsum("ij,ij->i", u, w) / np.maximum(
             np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1), 1e-300)
         np.add.at(angle, t[:, k], np.arccos(np.clip(c, -1.0, 1.0)))
-    # manifold, closed fans: every edge at the vertex has exactly two faces
-    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    ek, ec = np.unique(e, axis=0, return_counts=True)
-    open_v = np.zeros(nv, dtype=bool)
-    open_v[ek[ec != 2].ravel()] = True
     # convex: the vertex lies outside the plane through its faces' centroids along its normal
     area_n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
     vn = np.zeros_like(v)

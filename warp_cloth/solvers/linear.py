@@ -582,23 +582,11 @@ class SpringSystemOperator:
         self._fold(self.folded)
 
     def _fold(self, terms):
-        """The scalar CSR of the folded terms' entries (rows sorted, duplicates summed)."""
-        n, d = self.n, self.device
+        """The scalar CSR of the folded terms' entries (`scalar_csr`)."""
         ent = [t.scalar_entries() for t in terms]
-        rows = np.concatenate([e[0] for e in ent] + [np.zeros(0, np.int64)]).astype(np.int64)
-        cols = np.concatenate([e[1] for e in ent] + [np.zeros(0, np.int64)]).astype(np.int64)
-        vals = np.concatenate([e[2] for e in ent] + [np.zeros(0)]).astype(np.float64)
-        key, inv = np.unique(rows * n + cols, return_inverse=True)  # by row, then column
-        vals = np.bincount(inv.ravel(), weights=vals, minlength=len(key)) if len(key) else vals
-        rows, cols = key // max(n, 1), key % max(n, 1)
-        offsets = np.zeros(n + 1, dtype=np.int32)
-        if len(rows):
-            offsets[1:] = np.cumsum(np.bincount(rows, minlength=n))
-        self.s_offsets = wp.array(offsets, dtype=wp.int32, device=d)
-        self.s_cols = wp.array(cols.astype(np.int32) if len(cols) else np.zeros(1, np.int32),
-                               dtype=wp.int32, device=d)
-        self.s_vals = wp.array(vals.astype(np.float32) if len(vals) else np.zeros(1, np.float32),
-                               dtype=wp.float32, device=d)
+        offsets, cols, vals = scalar_csr(self.n, [e[0] for e in ent], [e[1] for e in ent],
+                                         [e[2] for e in ent])
+        self.s_offsets, self.s_cols, self.s_vals = csr_arrays(offsets, cols, vals, self.device)
 
     def _rows(self):
         """The launch arguments of the row gathers after ``scale``."""
@@ -658,6 +646,32 @@ class SpringSystemOperator:
 
 
 # ----------------------------------------------------------------------------------- helpers
+def scalar_csr(n: int, rows, cols, vals):
+    """Coordinate lists (sequences of arrays) -> CSR of an ``n x n`` scalar matrix, rows and
+    columns sorted, duplicates summed: ``(offsets (n+1) int32, cols int32, vals float64)``
+    (host). Shared by the implicit operator's folded terms and projective dynamics' matrix."""
+    rows = np.concatenate([np.asarray(r, np.int64) for r in rows] + [np.zeros(0, np.int64)])
+    cols = np.concatenate([np.asarray(c, np.int64) for c in cols] + [np.zeros(0, np.int64)])
+    vals = np.concatenate([np.asarray(v, np.float64) for v in vals] + [np.zeros(0)])
+    key, inv = np.unique(rows * n + cols, return_inverse=True)  # by row, then column
+    vals = np.bincount(inv.ravel(), weights=vals, minlength=len(key)) if len(key) else vals
+    rows, cols = key // max(n, 1), key % max(n, 1)
+    offsets = np.zeros(n + 1, dtype=np.int32)
+    if len(rows):
+        offsets[1:] = np.cumsum(np.bincount(rows, minlength=n))
+    return offsets, cols.astype(np.int32), vals
+
+
+def csr_arrays(offsets, cols, vals, device):
+    """`scalar_csr`'s arrays on ``device`` (``vals`` as float32; empty lists get one dummy
+    entry, never read)."""
+    return (wp.array(offsets, dtype=wp.int32, device=device),
+            wp.array(cols if len(cols) else np.zeros(1, np.int32), dtype=wp.int32,
+                     device=device),
+            wp.array(vals.astype(np.float32) if len(vals) else np.zeros(1, np.float32),
+                     dtype=wp.float32, device=device))
+
+
 def dense_matrix(A) -> np.ndarray:
     """Assemble ``A`` as a dense (3n x 3n) NumPy matrix by matvecs with unit vectors (tests only)."""
     n = A.n

@@ -70,7 +70,8 @@ from ..util import positive_finite
 from .base import Solver
 from .common import spring_energy64_kernel, to_float64_kernel
 from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
-from .linear import LINEAR_SOLVERS, estimate_spectral_radius, make_linear_solver
+from .linear import (LINEAR_SOLVERS, csr_arrays, estimate_spectral_radius, make_linear_solver,
+                     scalar_csr)
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
@@ -383,22 +384,9 @@ class PDSystemOperator:
             cols.append(c[off])
             w.append(-q[off])
             const_diag = const_diag + np.bincount(r[~off], weights=q[~off], minlength=n)
-        rows = np.concatenate(rows).astype(np.int64)
-        cols = np.concatenate(cols).astype(np.int64)
-        w = np.concatenate(w).astype(np.float64)
-        key, inv = np.unique(rows * n + cols, return_inverse=True)  # sorted by row, then column
-        wsum = np.bincount(inv.ravel(), weights=w, minlength=len(key)) if len(key) else w
-        rows, cols = key // max(n, 1), key % max(n, 1)
-        counts = np.bincount(rows, minlength=n) if len(rows) else np.zeros(n, dtype=np.int64)
-        offsets = np.zeros(n + 1, dtype=np.int32)
-        offsets[1:] = np.cumsum(counts)
         #: the CSR rows on the host (float64): springs and folded constant terms
-        self.csr_host = (offsets, cols.astype(np.int32), wsum)
-        self.offsets = wp.array(offsets, dtype=wp.int32, device=d)
-        self.neighbors = wp.array(cols.astype(np.int32) if len(cols) else np.zeros(1, np.int32),
-                                  dtype=wp.int32, device=d)
-        self.weights = wp.array(wsum.astype(np.float32) if len(wsum) else np.zeros(1, np.float32),
-                                dtype=wp.float32, device=d)
+        self.csr_host = scalar_csr(n, rows, cols, w)
+        self.offsets, self.neighbors, self.weights = csr_arrays(*self.csr_host, d)
         #: the constant part of the diagonal (springs' Laplacian, folded terms' diagonal)
         self.laplacian_diag = const_diag
         self.diag = wp.zeros(n, dtype=wp.float32, device=d)
