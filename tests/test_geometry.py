@@ -164,3 +164,49 @@ def test_ccd_time_is_conservative():
                 q = w[0] @ x[1:]
                 d = [np.linalg.norm(q - x[0])]
             assert d[0] <= delta + 1e-9
+
+
+@pytest.mark.parametrize("angle", [1e-5, 1e-7, 1e-9])
+def test_ccd_edges_crossing_at_a_small_angle(angle):
+    """Two edges a small angle apart that cross: the closest points of their lines must not
+    come from the Gram form (b f - c e) / (a e - b^2), which cancels at small angles (below
+    1e-7 rad the old code treated them as parallel and took an endpoint, 1e-8 apart, so the
+    crossing below passed as a miss at delta 1e-10)."""
+    c = np.array([0.3, 0.0, 0.0])
+    u = np.array([np.cos(angle), np.sin(angle), 0.0])
+    p = [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0)]
+    q = np.stack([c - 0.4 * u, c + 0.6 * u])
+    _, _, d = _closest(np.array([[p[0], p[1], q[0], q[1]]]))
+    assert d[0] < 1e-15
+    up, down = q + [0.0, 0.0, 1e-3], q - [0.0, 0.0, 1e-3]
+    s, t = _ee(p, [tuple(v) for v in up], p, [tuple(v) for v in down], delta=1e-10)
+    assert s == 1 and abs(t - 0.5) < 1e-6
+
+
+def test_ccd_no_false_negative_on_constructed_crossings():
+    """Edge pairs built to cross at a known time (half of them a 1e-7 rad angle apart, a tenth
+    touching at t = 0 and a tenth at t = 1, some far from the origin, some moving together):
+    every one is a hit. With the Gram form of the closest points 136 of 10,800 such queries
+    (all near-parallel) were missed."""
+    rng = np.random.default_rng(11)
+    n = 400
+    pts = np.zeros((n, 8, 3))
+    times = rng.uniform(0.0, 1.0, n)
+    times[: n // 10], times[n // 10: n // 5] = 0.0, 1.0
+    for k in range(n):
+        c = rng.normal(size=3)
+        d1 = rng.normal(size=3)
+        d1 /= np.linalg.norm(d1)
+        d2 = d1 + 1e-7 * rng.normal(size=3) if k % 2 else rng.normal(size=3)
+        d2 /= np.linalg.norm(d2)
+        s, t = rng.uniform(0.0, 1.0, 2)
+        l1, l2 = rng.uniform(0.01, 1.0, 2)
+        x = np.array([c - s * l1 * d1, c + (1 - s) * l1 * d1, c - t * l2 * d2,
+                      c + (1 - t) * l2 * d2])
+        x += [(0.0, 0.0, 0.0), (1e3, -2e3, 5e2), (-7.5, 3.1, 100.0)][k % 3]
+        v = rng.normal(size=(4, 3)) * [1e-4, 1.0, 100.0][k % 3]
+        if k % 5 == 0:
+            v[:] = v[0]  # moving together: no relative motion
+        pts[k, :4], pts[k, 4:] = x - times[k] * v, x + (1 - times[k]) * v
+    status, _, _ = run_queries(pts, True, delta=1e-10)
+    assert (status != geometry.CCD_MISS).all(), np.flatnonzero(status == geometry.CCD_MISS)
