@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warp_cloth.bench.ccd import default_queries_dir, read_queries, run_queries
+from warp_cloth.bench.ccd import (constructed_queries, default_queries_dir, read_queries,
+                                  run_queries)
 from warp_cloth.collision import geometry
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -184,29 +185,14 @@ def test_ccd_edges_crossing_at_a_small_angle(angle):
 
 
 def test_ccd_no_false_negative_on_constructed_crossings():
-    """Edge pairs built to cross at a known time (half of them a 1e-7 rad angle apart, a tenth
-    touching at t = 0 and a tenth at t = 1, some far from the origin, some moving together):
-    every one is a hit. With the Gram form of the closest points 136 of 10,800 such queries
-    (all near-parallel) were missed."""
-    rng = np.random.default_rng(11)
-    n = 400
-    pts = np.zeros((n, 8, 3))
-    times = rng.uniform(0.0, 1.0, n)
-    times[: n // 10], times[n // 10: n // 5] = 0.0, 1.0
-    for k in range(n):
-        c = rng.normal(size=3)
-        d1 = rng.normal(size=3)
-        d1 /= np.linalg.norm(d1)
-        d2 = d1 + 1e-7 * rng.normal(size=3) if k % 2 else rng.normal(size=3)
-        d2 /= np.linalg.norm(d2)
-        s, t = rng.uniform(0.0, 1.0, 2)
-        l1, l2 = rng.uniform(0.01, 1.0, 2)
-        x = np.array([c - s * l1 * d1, c + (1 - s) * l1 * d1, c - t * l2 * d2,
-                      c + (1 - t) * l2 * d2])
-        x += [(0.0, 0.0, 0.0), (1e3, -2e3, 5e2), (-7.5, 3.1, 100.0)][k % 3]
-        v = rng.normal(size=(4, 3)) * [1e-4, 1.0, 100.0][k % 3]
-        if k % 5 == 0:
-            v[:] = v[0]  # moving together: no relative motion
-        pts[k, :4], pts[k, 4:] = x - times[k] * v, x + (1 - times[k]) * v
+    """Edge pairs built to cross at a known time (`constructed_queries`: half of them 1e-7 rad
+    apart, a tenth touching at t = 0 and a tenth at t = 1, some far from the origin, some moving
+    together): every one is a hit. With the Gram form of the closest points 136 of 10,800 such
+    queries (all nearly parallel) were missed; 26 of these 400."""
+    pts, _, _ = constructed_queries(400, True, seed=11, angle=1e-7)
     status, _, _ = run_queries(pts, True, delta=1e-10)
     assert (status != geometry.CCD_MISS).all(), np.flatnonzero(status == geometry.CCD_MISS)
+    # the well-shaped vertex-triangle queries of the same kind: every one a hit as well
+    pts, _, degenerate = constructed_queries(400, False, seed=11, angle=1e-7)
+    status, _, _ = run_queries(pts[~degenerate], False, delta=1e-10)
+    assert (status != geometry.CCD_MISS).all()
