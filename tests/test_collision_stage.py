@@ -523,6 +523,86 @@ def test_feature_response_rounds_go_on_until_every_entry_holds():
     assert stage.frame_end() == []
 
 
+def _pinned_edge_on_a_box_edge():
+    """A cloth edge from a pinned vertex 0.5 mm over a box's top edge to a free one 4 cm off
+    it, 2 mm above the box: the box edge meets the cloth edge 1.2 % of its length from the pin
+    (weight 0.012 on the free end), inside the thickness."""
+    from warp_cloth import ClothModel, TriMesh
+    from warp_cloth.collision import MeshObstacle
+
+    v = np.array([[-0.0005, 0.002, 0.0], [0.04, 0.002, 0.0], [0.04, 0.002, 0.04],
+                  [-0.0005, 0.002, 0.04]])
+    mesh = TriMesh(v, np.array([[0, 2, 1], [0, 3, 2]]))
+    model = ClothModel(mesh, density=0.15, stretch_stiffness=1000.0, pins=[0, 3], device="cpu")
+    box = _box(0.1, 0.05, 0.1)
+    ob = MeshObstacle(box, position=(-0.1, -0.05, 0.0))  # top face y = 0, the edge at x = 0
+    return model, CollisionStage(model, [ob], thickness=0.005)
+
+
+def test_a_feature_pressed_on_pinned_cloth_is_reported_not_forced():
+    """A sharp feature that meets a cloth edge next to its pinned end cannot be cleared by
+    moving the free end: the projection's share would have thrown the free vertex by the
+    violation over its weight (here 25 cm; a thin rod driven through a curtain's pinned row
+    moved a vertex 4 cm in a step, then 1e6 strain under every solver). The entry is left
+    alone, counted and reported."""
+    model, stage = _pinned_edge_on_a_box_edge()
+    st = model.state()
+    x0 = st.positions()
+    stage.resolve(st, wp.array(x0, dtype=wp.vec3), 1.0 / 600.0)
+    moved = np.linalg.norm(st.positions() - x0, axis=1)
+    assert int(stage.pair_record.count.numpy()[0]) > 0  # the box edge found the cloth edge
+    assert moved.max() < 1e-3, f"a vertex was thrown {moved.max():.3f} m"
+    assert stage.stats["feature_pinned_total"] == 1
+    msgs = [m for m, _ in stage.frame_end()]
+    assert any("pinned vertex" in m for m in msgs), msgs
+
+
+def test_contact_at_a_pinned_vertex_puts_no_penalty_in_the_solve():
+    """The same entry in the implicit solve: its penalty, of stiffness kappa times the pinned
+    point's (infinite) effective mass over dt^2, would pull the free vertex by the violation
+    over its weight; it stays inactive."""
+    from warp_cloth.solvers.implicit import ImplicitEuler
+
+    model, stage = _pinned_edge_on_a_box_edge()
+    solver = ImplicitEuler(model, collision=stage)
+    st = model.state()
+    x0 = st.positions()
+    solver.step(st, 1.0 / 600.0)
+    assert np.linalg.norm(st.positions() - x0, axis=1).max() < 1e-3
+
+
+def test_obstacle_contacts_that_do_not_fit_are_reported_and_their_record_regrown():
+    """The mesh features' response record and the solve's obstacle record have a capacity; an
+    entry that does not fit is counted, reported at the frame's end, and the record doubles
+    (and the solve's coupling resizes what it sized by it)."""
+    from warp_cloth import ClothModel, TriMesh
+    from warp_cloth.collision import MeshObstacle
+    from warp_cloth.collision.record import make_record
+    from warp_cloth.solvers.implicit import ImplicitEuler
+
+    mesh = TriMesh.grid(4, 4, size=0.12, plane="xz", origin=(-0.0585, 0.41, -0.0595))
+    model = ClothModel(mesh, density=0.15, stretch_stiffness=1000.0, device="cpu")
+    stage = CollisionStage(model, [MeshObstacle(_cone(0.05, 0.4, 24))], thickness=0.005)
+    solver = ImplicitEuler(model, collision=stage)
+    st = model.state()
+    x0 = st.positions()
+    x1 = x0 - np.array([0.0, 0.03, 0.0])  # through the spike's tip: two dozen entries
+    stage.pair_record = make_record(2, "cpu")
+    stage.record = make_record(3, "cpu")
+    coupling = solver._contact()
+    stage.detect(wp.array(x0, dtype=wp.vec3), wp.array(x1, dtype=wp.vec3), 1.0 / 600.0, 0.0)
+    st.x.assign(x1)
+    stage.resolve(st, wp.array(x0, dtype=wp.vec3), 1.0 / 600.0)
+    out = stage.frame_end()
+    grown = [m for m, regrown in out if regrown and "did not fit" in m]
+    assert len(grown) == 2, out
+    assert stage.pair_record.vertex.shape[0] == 4 and stage.record.vertex.shape[0] == 6
+    assert coupling.slide.shape[0] == 6 and coupling.pairs_on.shape[0] == 6
+    assert stage.frame_end() == []  # reported once
+    solver.step(st, 1.0 / 600.0)  # the solve runs on the regrown record
+    assert np.isfinite(st.positions()).all()
+
+
 def test_mesh_edge_crossings_checker():
     from warp_cloth.collision import MeshObstacle
     from warp_cloth.collision.check import mesh_edge_crossings

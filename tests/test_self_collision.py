@@ -896,3 +896,26 @@ def test_span_allowance_after_a_partial_pass_is_a_lower_bound():
     np.minimum.at(a1, quads.ravel(), np.repeat(0.5 * (d - 1.01 * 0.005), 4))
     assert a1[v] < 0.003  # the face 1 cm above it
     np.testing.assert_allclose(sc._allow.numpy(), a1, atol=2e-7)
+
+
+def test_a_self_contact_at_a_pinned_vertex_is_reported_not_forced():
+    """Two triangles, one free corner between them: a pinned edge 2 mm above a cloth edge, 0.5 mm
+    from that edge's pinned end (weight 0.0125 on its free end). Moving the free vertex cannot
+    clear it: the projection's share would throw it by the violation over its weight (about
+    24 cm). The entry is left alone; the step is counted (``self_pinned``) and reported."""
+    import warp as wp
+
+    from warp_cloth import ClothModel, TriMesh
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    v = np.array([[0.0, 0.0, 0.0], [0.04, 0.0, 0.0], [0.0, 0.0, 0.04],
+                  [0.0005, 0.002, -0.02], [0.0005, 0.002, 0.02], [0.0005, 0.03, 0.0]])
+    mesh = TriMesh(v, np.array([[0, 1, 2], [3, 4, 5]]))
+    model = ClothModel(mesh, pins=[0, 2, 3, 4, 5], device="cpu")
+    sc = SelfCollision(model, 0.005)
+    st = model.state()
+    x0 = st.positions()
+    sc.resolve(st, wp.array(x0, dtype=wp.vec3, device="cpu"), 1.0 / 600.0)
+    assert np.linalg.norm(st.positions() - x0, axis=1).max() < 1e-3
+    assert sc.stats["self_pinned"] == 1 and sc.stats["self_fallback_all"] == 0
+    assert any("pinned vertex" in m for m, _ in sc.frame_end())

@@ -26,7 +26,10 @@ Per step, on the cloth's path from ``x_start`` to ``x`` (``physics.md`` 2.18-2.2
    new contacts grow the zones, ``zone_passes`` times. If one still comes that close, the whole
    cloth returns to its start with zero velocity. All counted in ``stats`` (``self_zones``,
    ``self_zone_vertices``, ``self_fallback_all``, per step and summed over the run), never
-   silent.
+   silent. An entry whose point is (nearly) a pinned vertex's (`features.pin_held`: the free
+   vertices carry under 1 % of its squared weights) is not projected, since moving them cannot
+   move it (the projection would throw them by the violation over their weight); a step that
+   leaves one violated is counted (``self_pinned``) and reported.
 
 No host decision: the rounds are a device-side loop and the impact zones a device-side
 conditional (`SelfCollision.resolve`).
@@ -67,11 +70,12 @@ __all__ = ["SelfCollision"]
 CCD_ITERATIONS = 64
 #: the counters of `SelfCollision.stats`, per step (and ``*_total``: summed over all steps)
 STAT_KEYS = ("self_contacts", "self_overflow", "self_zones", "self_zone_vertices",
-             "self_fallback_all", "self_responses")
+             "self_fallback_all", "self_responses", "self_pinned")
 # the counters the kernels write, by name (the order of STAT_KEYS is free)
 I_CONTACTS = wp.constant(STAT_KEYS.index("self_contacts"))
 I_OVERFLOW = wp.constant(STAT_KEYS.index("self_overflow"))
 I_RESPONSES = wp.constant(STAT_KEYS.index("self_responses"))
+I_PINNED = wp.constant(STAT_KEYS.index("self_pinned"))
 I_ZONES = STAT_KEYS.index("self_zones")  # the impact zones write this slot and the next
 I_FALLBACK = STAT_KEYS.index("self_fallback_all")
 if STAT_KEYS[I_ZONES + 1] != "self_zone_vertices":  # pragma: no cover - a layout invariant
@@ -524,7 +528,10 @@ def round_end_kernel(rec: ContactRecord, violated: wp.array(dtype=int), done: wp
         stats[I_OVERFLOW] = stats[I_OVERFLOW] + rec.overflow[0]
         if violated[0] == 0:
             done[0] = 1
+    if violated[1] > 0:  # a `pin_held` entry left alone: this step counts once
+        stats[I_PINNED] = 1
     violated[0] = 0
+    violated[1] = 0
     flags[0] = flags[0] + 1
     flags[1] = 0
     if done[0] == 0 and flags[0] < rounds:
@@ -544,6 +551,7 @@ def step_begin_kernel(done: wp.array(dtype=int), violated: wp.array(dtype=int),
     if i == 0:
         done[0] = 0
         violated[0] = 0
+        violated[1] = 0
         flags[0] = 0
         flags[1] = 1
         flags[2] = 0
@@ -596,13 +604,13 @@ class SelfCollision:
         if self.zone_passes < 0:
             raise ValueError("self-collision zone_passes must be >= 0")
         self.done = wp.zeros(1, dtype=int, device=d)
-        self.violated = wp.zeros(1, dtype=int, device=d)
+        self.violated = wp.zeros(2, dtype=int, device=d)  # [violated entries, a pin_held one]
         self._never = wp.zeros(1, dtype=int, device=d)
         self._flags = wp.zeros(3, dtype=int, device=d)  # round_end_kernel
         self._no_pairs = wp.zeros(0, dtype=wp.vec2i, device=d)
         self._npairs = wp.zeros(1, dtype=int, device=d)
         self._one = wp.ones(1, dtype=int, device=d)
-        self._held = wp.zeros(1, dtype=int, device=d)  # `hold`'s violation count (unused)
+        self._held = wp.zeros(2, dtype=int, device=d)  # `hold`'s violation counts (unused)
         # spans (`plan`): steps per frame (None: a response after every step), steps of the
         # frame taken, and on the device the span's start positions, steps and "respond" flag
         self.frame_steps = None
@@ -947,6 +955,11 @@ class SelfCollision:
             seen = 0 * t
         out = []
         i_all, i_over = STAT_KEYS.index("self_fallback_all"), STAT_KEYS.index("self_overflow")
+        i_pin = STAT_KEYS.index("self_pinned")
+        if t[i_pin] > seen[i_pin]:
+            out.append((f"self-collision: {t[i_pin] - seen[i_pin]} step(s) left a contact at a "
+                        "pinned vertex, which the response cannot move (the pins press the "
+                        "cloth into itself)", False))
         if t[i_all] > seen[i_all]:
             out.append((f"self-collision returned the whole cloth to its start in "
                         f"{t[i_all] - seen[i_all]} step(s): contacts the projection and the "

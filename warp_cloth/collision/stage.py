@@ -181,6 +181,10 @@ class CollisionStage:
         self.record = make_record(self.capacity, self.device)
         self.pair_record = (make_record(self.features.capacity, self.device)
                             if self.features.active else None)
+        # entries that did not fit, as last reported (`frame_end`), and what a regrown `record`
+        # must tell (a solve's coupling sizes its own arrays by it: `on_record_regrown`)
+        self._dropped_seen = [0, 0]
+        self._regrow_listeners = []
 
     # ------------------------------------------------------------------ what it holds
     @property
@@ -288,16 +292,49 @@ class CollisionStage:
     # ------------------------------------------------------------------ reports
     def frame_end(self) -> list:
         """Called by the runner after each frame (host reads): ``(message, regrown)`` for each
-        thing to report: responses to mesh features that ended still violated, self-collision
-        steps that returned the whole cloth to its start, and contacts dropped for want of room
-        (the record then doubles: ``regrown`` True, so a recorded graph must be recorded
-        again)."""
+        thing to report: responses to mesh features that ended still violated or pressed on
+        pinned vertices, self-collision steps that returned the whole cloth to its start, and
+        contacts dropped for want of room, obstacle or self (the record then doubles: ``regrown``
+        True, so a recorded graph must be recorded again)."""
         out = self.features.frame_end()
+        out += self._overflow_report()
         if self.self_collision is not None:
             out += self.self_collision.frame_end()
         coupling = getattr(self, "solve_coupling", None)  # self-contacts inside a solve
         if coupling is not None:
             out += coupling.self_frame_end()
+        return out
+
+    def on_record_regrown(self, callback) -> None:
+        """``callback(record)`` after `frame_end` replaces `record` with a larger one."""
+        self._regrow_listeners.append(callback)
+
+    def _overflow_report(self) -> list:
+        """Obstacle and mesh-feature entries dropped for want of room since the last call (host
+        reads, once a frame): the record that overflowed doubles (a recorded graph must then
+        be recorded again). The vertex-obstacle entries always fit (one per vertex and
+        obstacle); the sharp features' (8 per feature vertex and edge) may not, where a cloth
+        wraps around a feature: a thin rod through a curtain dropped 4,624 in one step."""
+        out = []
+        for k, name in ((0, "record"), (1, "pair_record")):
+            rec = getattr(self, name)
+            if rec is None:
+                continue
+            n = int(rec.overflow.numpy()[0])
+            new = n - self._dropped_seen[k]
+            if new <= 0:
+                continue
+            cap = 2 * int(rec.vertex.shape[0])
+            setattr(self, name, make_record(cap, self.device))
+            self._dropped_seen[k] = 0
+            if k == 0:
+                self.capacity = cap
+                for callback in self._regrow_listeners:
+                    callback(self.record)
+            what = ("the solve's obstacle contacts (they were still resolved after the solve)"
+                    if k == 0 else "the response's mesh-feature contacts")
+            out.append((f"{new} entries of {what} did not fit their record; its room is doubled "
+                        f"to {cap} entries", True))
         return out
 
     @property

@@ -97,6 +97,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..collision.features import pin_held
 from ..collision.record import KIND_VERTEX_OBSTACLE, ContactRecord
 from ..util import positive_finite
 
@@ -154,7 +155,10 @@ def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
     f = wp.vec3(0.0)
     H = wp.mat33(0.0)
     E = float(0.0)
-    if im <= 0.0:
+    if im <= 0.0 or pin_held(rec.vertex[e], rec.weight[e], inv_mass):
+        # a point (nearly) at a pinned vertex: its penalty, of stiffness kappa m_eff / dt^2
+        # with m_eff the pin's, would throw the free vertex by the violation over its weight
+        # (`pin_held`); left to the response, which reports it
         return on, f, H, H, E
     n = rec.normal[e]
     nn = wp.outer(n, n)
@@ -639,6 +643,8 @@ class ContactCoupling:
         # per entry of the obstacle record: driven past static friction this step (PD)
         self.slide = wp.zeros(max(int(stage.record.vertex.shape[0]), 1), dtype=int,
                               device=self.device)
+        if hasattr(stage, "on_record_regrown"):
+            stage.on_record_regrown(self._record_regrown)
         self._classified = False  # `friction_guess` wrote `slide` for this step
         # self-contacts inside the solve (stage.self_in_solve): their own record, each entry's
         # activity at the last assembly, and the off-diagonal Hessian as an operator term
@@ -699,6 +705,15 @@ class ContactCoupling:
                       [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
                        self.self_threads, b, diag, self.vblock, self.nblock, self.active,
                        self.self_on], device=self.device)
+
+    def _record_regrown(self, record) -> None:
+        """The stage's obstacle record was replaced by a larger one (`CollisionStage.frame_end`,
+        outside any captured step): the arrays sized by it follow."""
+        cap = int(record.vertex.shape[0])
+        self.threads = max(1, -(-cap // BATCH))
+        self.slide = wp.zeros(max(cap, 1), dtype=int, device=self.device)
+        if self.pairs_on is not None:
+            self.pairs_on = wp.zeros(max(cap, 1), dtype=int, device=self.device)
 
     def _grow_self(self, capacity: int) -> None:
         """A self-contact record of ``capacity`` entries (allocation: outside a captured step)."""
