@@ -90,6 +90,22 @@ class Obstacle:
         c, q = self.pose(t)
         return quat_rotate(q, np.asarray(points, dtype=np.float64)) + c
 
+    def _travel_points(self) -> np.ndarray:
+        """Local points whose rigid motion bounds that of every surface point (the corners of a
+        box holding the shape: a point's displacement is affine in it, so its norm is largest
+        at a corner). Overridden where part of the motion is invisible to contact."""
+        h = np.asarray(self._size(), dtype=np.float64)
+        return np.array([[x, y, z] for x in (-h[0], h[0]) for y in (-h[1], h[1])
+                         for z in (-h[2], h[2])])
+
+    def travel(self, t0: float, t1: float) -> float:
+        """How far (m) a point of the obstacle's surface moves from time ``t0`` to ``t1`` at most
+        (straight-line displacement; 0 for a static obstacle)."""
+        if not self.moving:
+            return 0.0
+        p = self._travel_points()
+        return float(np.linalg.norm(self.to_world(p, t1) - self.to_world(p, t0), axis=1).max())
+
     def signed_distance(self, points, t: float = 0.0) -> np.ndarray:
         """Signed distance (m, negative inside) of world points (N, 3) at time ``t``."""
         return self._local_sdf(self.to_local(np.atleast_2d(points), t))
@@ -209,6 +225,16 @@ class Plane(Obstacle):
         super().__init__(point, quat_between((0.0, 1.0, 0.0), self.normal), motion, friction,
                          restitution, name)
 
+    def travel(self, t0: float, t1: float) -> float:
+        """How far the plane moves along its normal from ``t0`` to ``t1`` (sliding in itself
+        does not show; a turn is not counted)."""
+        if not self.moving:
+            return 0.0
+        c0, _ = self.pose(t0)
+        c1, _ = self.pose(t1)
+        n = self.to_world(np.array([[0.0, 1.0, 0.0]]), t1)[0] - c1
+        return float(abs(np.dot(c1 - c0, n)))
+
     def _local_sdf(self, p):
         return p[:, 1].copy()
 
@@ -247,6 +273,9 @@ class Sphere(Obstacle):
 
     def _local_sdf(self, p):
         return np.linalg.norm(p, axis=1) - self.radius
+
+    def _travel_points(self):  # a sphere's spin does not move its surface
+        return np.zeros((1, 3))
 
     def _usd_geometry(self, stage, path):
         from pxr import UsdGeom
@@ -367,6 +396,11 @@ class MeshObstacle(Obstacle):
 
     def _center(self):
         return tuple(0.5 * (self.vertices.max(axis=0) + self.vertices.min(axis=0)))
+
+    def _travel_points(self):  # the corners of the vertices' bounding box
+        lo, hi = self.vertices.min(axis=0), self.vertices.max(axis=0)
+        return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                         for z in (lo[2], hi[2])], dtype=np.float64)
 
     def _bound(self):
         return float(np.linalg.norm(self.vertices, axis=1).max())

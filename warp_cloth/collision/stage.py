@@ -36,11 +36,17 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 import warp as wp
 
 from .contact import DEFAULT_THICKNESS, ObstacleContact
 from .obstacles import Obstacle
 from .record import make_record
+
+#: `CollisionStage.contact_substeps`: a moving obstacle travels at most this many of the cloth's
+#: shortest edge lengths in one step
+SUBSTEP_TRAVEL = 0.5
 from ..util import positive_finite
 
 __all__ = ["CollisionStage", "DEFAULT_SOLVE_MARGIN", "DEFAULT_SELF_MOTION"]
@@ -196,6 +202,30 @@ class CollisionStage:
         if self.contact is not None:
             return self.contact.thickness
         return self.self_collision.thickness
+
+    # ------------------------------------------------------------------ steps
+    def contact_substeps(self, fps: float, frames: int) -> int:
+        """Solver steps per frame such that no point of a moving obstacle travels farther than
+        `SUBSTEP_TRAVEL` times the cloth's shortest edge in one step, over the ``frames`` frames
+        at ``fps`` (1 when nothing moves; host work, once). A step's contacts are planes taken
+        from the predicted path; a sharp feature that sweeps past whole cloth edges within one
+        step leaves them to a single linearisation. Measured: a 6 mm rod through a curtain of
+        4.2 cm edges at 5 m/s (8 cm a frame), implicit Euler at its 2 steps a frame: an edge
+        hooked on the rod's end stretched to 280 % (explicit Euler, 185 steps: 11 %); at 4 steps
+        16 %."""
+        moving = [ob for ob in self.obstacles if ob.moving]
+        if not moving or frames < 1:
+            return 1
+        m = self.model
+        ne = len(m.mesh.edges)
+        rest = np.asarray(m.spring_rest)[:ne] if ne else np.zeros(0)
+        rest = rest[rest > 0]
+        if len(rest) == 0:
+            return 1
+        edge = float(rest.min())
+        t = np.arange(int(frames) + 1) / float(fps)
+        travel = max(ob.travel(t[k], t[k + 1]) for ob in moving for k in range(int(frames)))
+        return max(1, int(math.ceil(travel / (SUBSTEP_TRAVEL * edge) - 1e-9)))
 
     # ------------------------------------------------------------------ spans
     def plan(self, substeps: int) -> None:
