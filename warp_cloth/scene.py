@@ -92,7 +92,7 @@ class Scene:
         frames: number of frames written, including frame 0 (the initial state).
         substeps: solver steps per frame; ``None`` asks the solver (`suggest_substeps`), which for
             the explicit solver derives it from its stability bound, and, with moving obstacles,
-            takes at least enough that none travels more than half the cloth's shortest edge in
+            takes at least enough that none travels more than a quarter of the cloth's shortest edge in
             a step (`CollisionStage.contact_substeps`).
         obstacles: obstacles for a solver without a collision stage: the runner gives the
             solver a `CollisionStage` with them (default contact options), so they are
@@ -121,13 +121,13 @@ class Scene:
                     f"to stay stable (more than {MAX_SUBSTEPS}); raise fps or give substeps")
             stage = getattr(solver, "collision", None)
             if stage is not None and hasattr(stage, "contact_substeps"):
-                # moving obstacles: no more than half a cloth edge of travel in a step
+                # moving obstacles: no more than a quarter of a cloth edge of travel in a step
                 need = stage.contact_substeps(fps, int(frames))
                 if need > MAX_SUBSTEPS:
                     raise ValueError(
                         f"an obstacle moves so fast that contact needs {need} substeps per frame "
                         f"at {fps:g} fps (more than {MAX_SUBSTEPS}: it travels more than "
-                        f"{MAX_SUBSTEPS // 2} of the cloth's shortest edges in a frame); raise "
+                        f"{MAX_SUBSTEPS // 4} of the cloth's shortest edges in a frame); raise "
                         "fps or give substeps")
                 substeps = max(substeps, need)
         if int(substeps) != substeps or substeps < 1:

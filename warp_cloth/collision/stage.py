@@ -46,7 +46,7 @@ from .record import make_record
 
 #: `CollisionStage.contact_substeps`: a moving obstacle travels at most this many of the cloth's
 #: shortest edge lengths in one step
-SUBSTEP_TRAVEL = 0.5
+SUBSTEP_TRAVEL = 0.25
 from ..util import positive_finite
 
 __all__ = ["CollisionStage", "DEFAULT_SOLVE_MARGIN", "DEFAULT_SELF_MOTION"]
@@ -212,7 +212,8 @@ class CollisionStage:
         step leaves them to a single linearisation. Measured: a 6 mm rod through a curtain of
         4.2 cm edges at 5 m/s (8 cm a frame), implicit Euler at its 2 steps a frame: an edge
         hooked on the rod's end stretched to 280 % (explicit Euler, 185 steps: 11 %); at 4 steps
-        16 %."""
+        (half an edge) 16 %, at 8 (a quarter) 14 %. A 60 cm blade spinning at 8 rad/s (4 cm a
+        frame at its tips) into the curtain: 36 % at 2 steps (half an edge), 3.5 % at 4."""
         moving = [ob for ob in self.obstacles if ob.moving]
         if not moving or frames < 1:
             return 1
