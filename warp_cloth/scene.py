@@ -92,8 +92,8 @@ class Scene:
         frames: number of frames written, including frame 0 (the initial state).
         substeps: solver steps per frame; ``None`` asks the solver (`suggest_substeps`), which for
             the explicit solver derives it from its stability bound, and, with moving obstacles,
-            takes at least enough that none travels more than a quarter of the cloth's shortest edge in
-            a step (`CollisionStage.contact_substeps`).
+            takes at least enough that none travels more than a quarter of the cloth's shortest
+            edge in a step (`CollisionStage.contact_substeps`).
         obstacles: obstacles for a solver without a collision stage: the runner gives the
             solver a `CollisionStage` with them (default contact options), so they are
             simulated and drawn. A solver with a stage is drawn with the stage's obstacles;

@@ -152,7 +152,8 @@ def constructed_queries(n: int, edge_edge: bool, seed: int = 0, angle: float = 1
         else:
             tri = scale * rng.normal(size=(3, 3))
             if degenerate[k]:
-                tri[2] = tri[0] + rng.uniform() * (tri[1] - tri[0]) + angle * scale * rng.normal(size=3)
+                u = rng.uniform()
+                tri[2] = tri[0] + u * (tri[1] - tri[0]) + angle * scale * rng.normal(size=3)
             w = rng.dirichlet([1.0, 1.0, 1.0])
             x = np.vstack([w @ tri, tri])
         x = x + offsets[k % 3]
