@@ -37,17 +37,16 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
 import warp as wp
 
 from .contact import DEFAULT_THICKNESS, ObstacleContact
 from .obstacles import Obstacle
 from .record import make_record
+from ..util import positive_finite
 
 #: `CollisionStage.contact_substeps`: a moving obstacle travels at most this many of the cloth's
 #: shortest edge lengths in one step
 SUBSTEP_TRAVEL = 0.25
-from ..util import positive_finite
 
 __all__ = ["CollisionStage", "DEFAULT_SOLVE_MARGIN", "DEFAULT_SELF_MOTION"]
 
