@@ -220,6 +220,24 @@ def test_ccd_bench_totals_line(capsys):
     assert last.startswith("total: queries=179 ") and "false_negatives=0" in last
 
 
+def test_ccd_bench_constructed_queries(capsys):
+    """``--constructed N``: N built positives of each kind, reported with their misses; bad
+    counts and angles are refused before any work."""
+    from warp_cloth.bench import ccd
+
+    here = __import__("os").path.dirname(__file__)
+    assert ccd.main(["--queries", here + "/data/ccd-queries", "--repeats", "1",
+                     "--constructed", "60", "--angle", "1e-4"]) == 0
+    out = capsys.readouterr().out
+    assert "constructed edge-edge (angle 0.0001): queries=60 missed=0" in out
+    assert "constructed vertex-face (angle 0.0001): queries=60 missed=0" in out
+    for bad in (["--constructed", "-1"], ["--angle", "nan"], ["--angle", "-1e-7"]):
+        with pytest.raises(SystemExit):
+            ccd.main(["--queries", here + "/data/ccd-queries", *bad])
+    with pytest.raises(ValueError, match="angle"):
+        ccd.constructed_queries(4, True, angle=float("inf"))
+
+
 def test_render_bench_reports_time_and_page_size(capsys):
     import json
 

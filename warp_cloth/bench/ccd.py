@@ -38,6 +38,7 @@ from __future__ import annotations
 import argparse
 import glob
 import json
+import math
 import os
 import sys
 import time
@@ -131,6 +132,11 @@ def constructed_queries(n: int, edge_edge: bool, seed: int = 0, angle: float = 1
     (-7.5, 3.1, 100); velocity scales through 1e-4, 1 and 100; every fifth query moves rigidly
     (no relative motion). The slivers are a known limit of the float64 distance (the module
     docstring: below a thinness of about 1e-6)."""
+    if int(n) != n or n < 0:
+        raise ValueError(f"constructed_queries: n must be a whole number >= 0, got {n!r}")
+    if not (math.isfinite(angle) and angle >= 0.0):
+        raise ValueError(f"constructed_queries: angle must be a finite number >= 0, got {angle!r}")
+    n = int(n)
     rng = np.random.default_rng(seed)
     pts = np.zeros((n, 8, 3))
     times = rng.uniform(0.0, 1.0, n)
@@ -179,6 +185,11 @@ def main(argv=None) -> int:
                    help="the constructed degenerate queries' angle / thinness (default 1e-7)")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
+    if args.constructed < 0:
+        p.error("--constructed must be >= 0")
+    if not (math.isfinite(args.angle) and args.angle >= 0.0):
+        p.error(f"--angle must be a finite number >= 0 (radians, or a triangle's thinness), "
+                f"got {args.angle}")
     quiet_warp()
     root = args.queries or default_queries_dir()
     if root is None or not os.path.isdir(root):
@@ -215,8 +226,6 @@ def main(argv=None) -> int:
                   f"capped={r['capped']} us_per_query={r['us_per_query']:.2f}")
     us = 1e6 * tot["seconds"] / max(tot["queries"], 1)
     built = {}
-    if args.constructed < 0:
-        p.error("--constructed must be >= 0")
     for ee in (False, True) if args.constructed else ():
         pts, _, degen = constructed_queries(args.constructed, ee, args.seed, args.angle)
         status, _, _ = run_queries(pts, ee, args.delta, args.max_iter, device, 1)
