@@ -633,6 +633,14 @@ def test_moving_obstacles_set_the_substeps():
     assert scene.solver.collision.contact_substeps(60.0, scene.frames) == 8
     assert scene.substeps == 8
     assert _rod_through_curtain(3).substeps == 3  # given substeps are kept
+    # the same obstacle given to the Scene alone (the runner makes the stage): the same rule
+    from warp_cloth import Scene
+    from warp_cloth.solvers.implicit import ImplicitEuler
+
+    rod = scene.solver.collision.obstacles[0]
+    model = ClothModel(scene.model.mesh, pins=scene.model.pins, device="cpu")
+    assert Scene(model, ImplicitEuler(model), fps=60.0, frames=scene.frames,
+                 obstacles=[rod]).substeps == 8
     model = ClothModel(TriMesh.grid(4, 4, size=1.0), device="cpu")
     quiet = CollisionStage(model, [Sphere(0.2, motion=Motion(angular_velocity=(0, 50.0, 0))),
                                    Plane(motion=Motion(linear_velocity=(3.0, 0.0, 0.0)))])

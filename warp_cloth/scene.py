@@ -113,6 +113,12 @@ class Scene:
             raise ValueError(f"fps must be positive, got {fps}")
         if int(frames) != frames or frames < 1:
             raise ValueError(f"frames must be a positive integer, got {frames}")
+        if substeps is not None and (int(substeps) != substeps or substeps < 1):
+            raise ValueError(f"substeps must be a positive integer, got {substeps}")
+        if not (strain_bound > 0):
+            raise ValueError(f"strain_bound must be > 0, got {strain_bound}")
+        # the obstacles first: a stage made here from them sets the substeps like any other
+        drawn = _scene_obstacles(model, solver, obstacles)
         if substeps is None:
             substeps = suggest_substeps(solver, 1.0 / fps)
             if substeps > MAX_SUBSTEPS:
@@ -130,17 +136,13 @@ class Scene:
                         f"{MAX_SUBSTEPS // 4} of the cloth's shortest edges in a frame); raise "
                         "fps or give substeps")
                 substeps = max(substeps, need)
-        if int(substeps) != substeps or substeps < 1:
-            raise ValueError(f"substeps must be a positive integer, got {substeps}")
         stage = getattr(solver, "collision", None)
         if stage is not None and hasattr(stage, "plan"):
             stage.plan(int(substeps))  # self-collision spans end with the frames
-        if not (strain_bound > 0):
-            raise ValueError(f"strain_bound must be > 0, got {strain_bound}")
         self.model, self.solver = model, solver
         self.fps, self.frames, self.substeps = fps, int(frames), int(substeps)
         self.dt = 1.0 / (fps * self.substeps)
-        self.obstacles = _scene_obstacles(model, solver, obstacles)
+        self.obstacles = drawn
         self.strain_bound = float(strain_bound)
         self.capture = capture
         self.name = name
