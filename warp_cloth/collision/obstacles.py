@@ -51,6 +51,12 @@ def _check_coefficient(name, value, upper=None):
     return value
 
 
+def _box_corners(lo, hi) -> np.ndarray:
+    """The 8 corners (8, 3) of the axis-aligned box ``[lo, hi]``."""
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                     for z in (lo[2], hi[2])], dtype=np.float64)
+
+
 class Obstacle:
     """Base class: pose, motion, material overrides, USD output. Use a subclass."""
 
@@ -95,8 +101,7 @@ class Obstacle:
         box holding the shape: a point's displacement is affine in it, so its norm is largest
         at a corner). Overridden where part of the motion is invisible to contact."""
         h = np.asarray(self._size(), dtype=np.float64)
-        return np.array([[x, y, z] for x in (-h[0], h[0]) for y in (-h[1], h[1])
-                         for z in (-h[2], h[2])])
+        return _box_corners(-h, h)
 
     def travel(self, t0: float, t1: float) -> float:
         """How far (m) a point of the obstacle's surface moves from time ``t0`` to ``t1`` at most
@@ -398,9 +403,7 @@ class MeshObstacle(Obstacle):
         return tuple(0.5 * (self.vertices.max(axis=0) + self.vertices.min(axis=0)))
 
     def _travel_points(self):  # the corners of the vertices' bounding box
-        lo, hi = self.vertices.min(axis=0), self.vertices.max(axis=0)
-        return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                         for z in (lo[2], hi[2])], dtype=np.float64)
+        return _box_corners(self.vertices.min(axis=0), self.vertices.max(axis=0))
 
     def _bound(self):
         return float(np.linalg.norm(self.vertices, axis=1).max())

@@ -621,13 +621,10 @@ class ContactCoupling:
         # with mesh features, the record holds entries of two cloth vertices (a cloth edge on an
         # obstacle's feature): their activity, for the off-diagonal part of their Hessian
         self._dt = 1.0  # the step's dt, set by `add_newton` (read by `matvec_add`)
-        feats = getattr(getattr(stage, "features", None), "active", False)
-        self.pairs_on = (wp.zeros(max(int(stage.capacity), 1), dtype=int, device=self.device)
-                         if feats else None)
+        self._feature_pairs = getattr(getattr(stage, "features", None), "active", False)
         #: whether `matvec_add` applies the feature pairs' off-diagonal blocks (Newton: yes;
         #: projective dynamics sets False, its local step writes lumped diagonal blocks)
         self.pairs_in_operator = True
-        self.threads = max(1, -(-stage.capacity // BATCH))
         self.sources = max(1, len(stage.obstacles))
         # normal force per (vertex, obstacle) at the end of the last step: friction's bound
         self.lam = wp.zeros(model.num_vertices * self.sources, dtype=float, device=self.device)
@@ -640,9 +637,9 @@ class ContactCoupling:
         self._no_flags = wp.zeros(0, dtype=int, device=self.device)
         self._no_vec = wp.zeros(0, dtype=wp.vec3, device=self.device)
         self._no_configs = wp.zeros((0, 0), dtype=wp.vec3, device=self.device)
-        # per entry of the obstacle record: driven past static friction this step (PD)
-        self.slide = wp.zeros(max(int(stage.record.vertex.shape[0]), 1), dtype=int,
-                              device=self.device)
+        # sized by the obstacle record: `pairs_on`, `slide` (per entry: driven past static
+        # friction this step, PD) and the threads (again whenever the stage regrows it)
+        self._record_regrown(stage.record)
         if hasattr(stage, "on_record_regrown"):
             stage.on_record_regrown(self._record_regrown)
         self._classified = False  # `friction_guess` wrote `slide` for this step
@@ -707,13 +704,14 @@ class ContactCoupling:
                        self.self_on], device=self.device)
 
     def _record_regrown(self, record) -> None:
-        """The stage's obstacle record was replaced by a larger one (`CollisionStage.frame_end`,
-        outside any captured step): the arrays sized by it follow."""
+        """The arrays sized by the stage's obstacle record: at construction, and when
+        `CollisionStage.frame_end` replaces the record with a larger one (outside any captured
+        step)."""
         cap = int(record.vertex.shape[0])
         self.threads = max(1, -(-cap // BATCH))
         self.slide = wp.zeros(max(cap, 1), dtype=int, device=self.device)
-        if self.pairs_on is not None:
-            self.pairs_on = wp.zeros(max(cap, 1), dtype=int, device=self.device)
+        self.pairs_on = (wp.zeros(max(cap, 1), dtype=int, device=self.device)
+                         if self._feature_pairs else None)
 
     def _grow_self(self, capacity: int) -> None:
         """A self-contact record of ``capacity`` entries (allocation: outside a captured step)."""
