@@ -649,6 +649,9 @@ def test_moving_obstacles_set_the_substeps():
     assert lift.contact_substeps(60.0, 100) == 1  # 5 cm a frame over a quarter of 25 cm
     fast = CollisionStage(model, [Plane(motion=Motion(linear_velocity=(0.0, 30.0, 0.0)))])
     assert fast.contact_substeps(60.0, 100) == 8  # 50 cm a frame
+    for fps, frames in ((0.0, 10), (float("nan"), 10), (60.0, -1), (60.0, 2.5)):
+        with pytest.raises(ValueError, match="contact_substeps"):
+            fast.contact_substeps(fps, frames)
 
 
 def test_a_fast_thin_rod_through_a_curtain_stays_plausible():

@@ -213,6 +213,12 @@ class CollisionStage:
         hooked on the rod's end stretched to 280 % (explicit Euler, 185 steps: 11 %); at 4 steps
         (half an edge) 16 %, at 8 (a quarter) 14 %. A 60 cm blade spinning at 8 rad/s (4 cm a
         frame at its tips) into the curtain: 36 % at 2 steps (half an edge), 3.5 % at 4."""
+        fps = float(fps)
+        if not (math.isfinite(fps) and fps > 0):
+            raise ValueError(f"contact_substeps: fps must be a positive number, got {fps}")
+        if int(frames) != frames or frames < 0:
+            raise ValueError(f"contact_substeps: frames must be a whole number >= 0, got "
+                             f"{frames!r}")
         moving = [ob for ob in self.obstacles if ob.moving]
         if not moving or frames < 1:
             return 1
