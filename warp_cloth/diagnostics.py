@@ -10,6 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .util import launch
+
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 
@@ -80,11 +82,11 @@ class Meter:
         m, out = self.model, self.out
         out.zero_()
         self.sums.zero_()
-        wp.launch(vertex_measure_kernel, m.num_vertices,
+        launch(vertex_measure_kernel, m.num_vertices,
                   [state.x, state.v, m.mass, wp.vec3(*m.gravity), out, self.sums],
                   device=m.device)
         if m.num_stretch_springs:
-            wp.launch(strain_measure_kernel, m.num_stretch_springs,
+            launch(strain_measure_kernel, m.num_stretch_springs,
                       [state.x, m.spring_indices, m.spring_rest_length, out], device=m.device)
         h = out.numpy()
         finite = h[0] == 0

@@ -79,7 +79,7 @@ import numpy as np
 import warp as wp
 
 from .tethers import PinStretch, model_tether_anchors, tether_kernel
-from .util import positive_finite
+from .util import launch, positive_finite
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
@@ -385,7 +385,7 @@ def color_constraints(pairs: np.ndarray, num_vertices: int) -> np.ndarray:
     if len(pairs) and num_vertices < 2**31:
         colors = wp.zeros(len(pairs), dtype=wp.int64, device="cpu")
         overflow = wp.zeros(1, dtype=wp.int32, device="cpu")
-        wp.launch(_greedy_color_kernel, 1,
+        launch(_greedy_color_kernel, 1,
                   [wp.array(pairs.astype(np.int32), dtype=wp.int32, ndim=2, device="cpu"),
                    wp.zeros(num_vertices, dtype=wp.int64, device="cpu"), colors, overflow],
                   device="cpu")
@@ -499,7 +499,7 @@ class _JacobiLimit:
                 self._sweep(state, dt)
         else:
             self._check(state.x)
-            wp.launch(limit_loop_kernel, 1, [self._counts, self._excess, self.iterations, 1, self._group],
+            launch(limit_loop_kernel, 1, [self._counts, self._excess, self.iterations, 1, self._group],
                       device=self.device)
             wp.capture_while(self._cond, self._adaptive_sweep, state=state, dt=dt)
         self._finish(state, dt)
@@ -529,7 +529,7 @@ class _JacobiLimit:
                 stage, x_start = self._contact
                 stage.project_positions(state.x, x_start, dt, state.time)
         self._check(state.x)
-        wp.launch(limit_loop_kernel, 1, [self._counts, self._excess, self.iterations, 0, k],
+        launch(limit_loop_kernel, 1, [self._counts, self._excess, self.iterations, 0, k],
                   device=self.device)
 
     def _begin(self, state):
@@ -544,7 +544,7 @@ class _JacobiLimit:
     def _sweep(self, state, dt, grouped=False):
         """One Jacobi iteration: every element's correction, then the blend (and ``v``)."""
         self._launch_elements(state.x)
-        wp.launch(limit_apply_kernel, self.model.num_vertices,
+        launch(limit_apply_kernel, self.model.num_vertices,
                   [state.x, state.v, self._delta, self._count, self.relaxation, 1.0 / dt],
                   device=self.device)
 
@@ -689,12 +689,12 @@ class StrainLimit(_JacobiLimit):
 
     def _finish(self, state, dt):
         if self.gauss_seidel:
-            wp.launch(limit_velocity_kernel, self.model.num_vertices,
+            launch(limit_velocity_kernel, self.model.num_vertices,
                       [state.x, state.v, self._x_before, 1.0 / dt], device=self.device)
 
     def _group_begin(self, state):
         if self._tether is not None:
-            wp.launch(tether_kernel, self.model.num_vertices, [state.x, *self._tether],
+            launch(tether_kernel, self.model.num_vertices, [state.x, *self._tether],
                       device=self.device)
 
     def _sweep(self, state, dt, grouped=False):
@@ -702,21 +702,21 @@ class StrainLimit(_JacobiLimit):
             return super()._sweep(state, dt)
         m, offs = self.model, self.color_offsets
         if self._tether is not None and not grouped:
-            wp.launch(tether_kernel, m.num_vertices, [state.x, *self._tether], device=self.device)
+            launch(tether_kernel, m.num_vertices, [state.x, *self._tether], device=self.device)
         for c in range(len(offs) - 1):
-            wp.launch(strain_limit_gs_kernel, offs[c + 1] - offs[c],
+            launch(strain_limit_gs_kernel, offs[c + 1] - offs[c],
                       [state.x, self._edges, self._rest, m.inv_mass, self.sigma_min,
                        min(self.sigma_max, 3.0e38), offs[c], *self._targets], device=self.device)
 
     def _check(self, x):
         t = self.tolerance
-        wp.launch(strain_check_kernel, self.num_edges,
+        launch(strain_check_kernel, self.num_edges,
                   [x, self._edges, self._rest, self.model.inv_mass, self.sigma_min - t,
                    min(self.sigma_max + t, 3.0e38), self._bad, self._excess], device=self.device)
 
     def _launch_elements(self, x):
         m = self.model
-        wp.launch(strain_limit_kernel, self.num_edges,
+        launch(strain_limit_kernel, self.num_edges,
                   [x, self._edges, self._rest, m.inv_mass, self.sigma_min,
                    min(self.sigma_max, 3.0e38), self._delta, self._count],
                   device=self.device)
@@ -769,14 +769,14 @@ class AreaLimit(_JacobiLimit):
 
     def _check(self, x):
         t = self.tolerance
-        wp.launch(area_check_kernel, self.model.num_triangles,
+        launch(area_check_kernel, self.model.num_triangles,
                   [x, self.model.tri_indices, self._rest_area, self.model.inv_mass,
                    self.a_min - t, min(self.a_max + t, 3.0e38), self._bad, self._excess],
                   device=self.device)
 
     def _launch_elements(self, x):
         m = self.model
-        wp.launch(area_limit_kernel, m.num_triangles,
+        launch(area_limit_kernel, m.num_triangles,
                   [x, m.tri_indices, self._rest_area, m.mass, m.inv_mass, self.a_min,
                    min(self.a_max, 3.0e38), self._delta, self._count],
                   device=self.device)

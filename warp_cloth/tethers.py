@@ -14,6 +14,8 @@ import math
 import numpy as np
 import warp as wp
 
+from .util import launch
+
 wp.set_module_options({"enable_backward": False})
 
 __all__ = ["tether_anchors", "model_tether_anchors", "tether_kernel", "PinStretch"]
@@ -99,7 +101,7 @@ class PinStretch:
     def update(self, x) -> None:
         """The ratio for the pins' positions in ``x`` (nothing if the pins do not move)."""
         if self.moving:
-            wp.launch(pin_stretch_kernel, 1, [x, self._pins, self._rest, self.scale],
+            launch(pin_stretch_kernel, 1, [x, self._pins, self._rest, self.scale],
                       device=self.device)
 
 
@@ -311,7 +313,7 @@ def tether_anchors(vertices, triangles, sources, k: int = 2, *, heap: int | None
         heap = (wp.empty(cap, dtype=wp.float64, device=cpu),
                 wp.empty(cap, dtype=wp.int32, device=cpu),
                 wp.empty(cap, dtype=wp.int32, device=cpu))
-        wp.launch(geodesic_labels_kernel, 1, [*args, label_s, label_d, nlab, *heap, full],
+        launch(geodesic_labels_kernel, 1, [*args, label_s, label_d, nlab, *heap, full],
                   device=cpu)
         if not full.numpy()[0]:
             break

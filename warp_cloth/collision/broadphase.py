@@ -32,6 +32,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from ..util import launch
+
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = ["ClothBroadPhase", "BROADPHASE_METHODS", "grid_radius"]
@@ -152,7 +154,7 @@ class ClothBroadPhase:
     def update(self, x0, x1, pad: float, vertices: bool = False) -> None:
         """Boxes of the paths ``x0 -> x1`` inflated by ``pad``, and the BVHs refitted;
         ``vertices``: also the vertices' boxes and their BVH ``vertex_bvh`` (BVH method only)."""
-        wp.launch(cloth_bounds_kernel, self.num_tris + self.num_edges,
+        launch(cloth_bounds_kernel, self.num_tris + self.num_edges,
                   [x0, x1, self.tris, self.edges, self.num_tris, float(pad), self.lowers,
                    self.uppers, self.elowers, self.euppers], device=self.device)
         if vertices and self.method == "bvh":
@@ -160,7 +162,7 @@ class ClothBroadPhase:
                 n = len(x0)
                 self.vlowers = wp.zeros(n, dtype=wp.vec3, device=self.device)
                 self.vuppers = wp.zeros(n, dtype=wp.vec3, device=self.device)
-            wp.launch(vertex_bounds_kernel, len(x0), [x0, x1, float(pad), self.vlowers,
+            launch(vertex_bounds_kernel, len(x0), [x0, x1, float(pad), self.vlowers,
                                                       self.vuppers], device=self.device)
             if self.vertex_bvh is None:
                 self.vertex_bvh = wp.Bvh(self.vlowers, self.vuppers)
@@ -169,10 +171,10 @@ class ClothBroadPhase:
         if self.method == "grid":
             self.rmax.zero_()
             if self.num_tris:
-                wp.launch(box_centres_kernel, self.num_tris,
+                launch(box_centres_kernel, self.num_tris,
                           [self.lowers, self.uppers, self.centres, self.rmax, 0], device=self.device)
             if self.num_edges:
-                wp.launch(box_centres_kernel, self.num_edges,
+                launch(box_centres_kernel, self.num_edges,
                           [self.elowers, self.euppers, self.ecentres, self.rmax, 1],
                           device=self.device)
             cell = self.rest_span + 2.0 * float(pad)

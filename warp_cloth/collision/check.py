@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from ..util import launch
+
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = ["mesh_edge_crossings", "self_crossings", "SelfIntersectionChecker"]
@@ -41,7 +43,7 @@ def mesh_edge_crossings(obstacle, positions, edges, t: float = 0.0, device="cpu"
     x = wp.array(local.astype(np.float32), dtype=wp.vec3, device=device)
     e = wp.array(edges, dtype=wp.int32, ndim=2, device=device)
     hit = wp.zeros(len(edges), dtype=int, device=device)
-    wp.launch(edge_ray_kernel, len(edges), [obstacle.wp_mesh(device).id, x, e, hit], device=device)
+    launch(edge_ray_kernel, len(edges), [obstacle.wp_mesh(device).id, x, e, hit], device=device)
     return hit.numpy().astype(bool)
 
 
@@ -143,14 +145,14 @@ class SelfIntersectionChecker:
             wp.copy(self.x, positions)
         else:
             self.x.assign(np.asarray(positions, dtype=np.float32))
-        wp.launch(tri_box_kernel, self.tris.shape[0], [self.x, self.tris, self.lowers, self.uppers],
+        launch(tri_box_kernel, self.tris.shape[0], [self.x, self.tris, self.lowers, self.uppers],
                   device=self.device)
         if self.bvh is None:
             self.bvh = wp.Bvh(self.lowers, self.uppers)
         else:
             self.bvh.refit()
         self.count.zero_()
-        wp.launch(self_crossing_kernel, self.edges.shape[0],
+        launch(self_crossing_kernel, self.edges.shape[0],
                   [self.bvh.id, self.x, self.tris, self.edges, self.count, self.per_edge],
                   device=self.device)
         return int(self.count.numpy()[0])

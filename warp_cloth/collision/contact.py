@@ -94,6 +94,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..util import launch
 from .motion import KIND_MESH, quat_rotate
 from .obstacles import Obstacle
 
@@ -345,7 +346,7 @@ class ObstacleContact:
             from .analytic import integrate_contact_kernel
 
             # static spheres and planes: the whole contact inside the vertex update
-            wp.launch(integrate_contact_kernel(self._far_kinds, update), m.num_vertices,
+            launch(integrate_contact_kernel(self._far_kinds, update), m.num_vertices,
                       [*head[:7], self._analytic_reach, self.thickness, self.slack,
                        int(self.ccd)], device=self.device)
             return
@@ -353,14 +354,14 @@ class ObstacleContact:
             from .analytic import integrate_far_kernel
 
             self._a_count.zero_()
-            wp.launch(integrate_far_kernel(self._far_kinds, update), m.num_vertices,
+            launch(integrate_far_kernel(self._far_kinds, update), m.num_vertices,
                       [*head, self._analytic_reach, self.thickness, self.slack, int(self.ccd),
                        self._a_count, self._a_list], device=self.device)
         else:
             from .mesh_contact import integrate_mesh_far_kernel
 
             self._m_count.zero_()
-            wp.launch(integrate_mesh_far_kernel(self._mesh_moving, update), m.num_vertices,
+            launch(integrate_mesh_far_kernel(self._mesh_moving, update), m.num_vertices,
                       [*head, self._mesh_reach, self.thickness, self.slack, int(self.ccd),
                        self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
                        self._m_mask],
@@ -393,13 +394,13 @@ class ObstacleContact:
         if self._analytic_data is not None:
             from .analytic import analytic_planes_kernel
 
-            wp.launch(analytic_planes_kernel, nt,
+            launch(analytic_planes_kernel, nt,
                       [self._analytic_data, self._analytic_reach, self.poses, x, x_start, th, ccd,
                        self._ai_count, self._ai_list, nt, self._a_planes], device=self.device)
         if self._mesh_data is not None:
             from .mesh_contact import mesh_planes_kernel
 
-            wp.launch(mesh_planes_kernel, nt,
+            launch(mesh_planes_kernel, nt,
                       [self._mesh_data, self._mesh_ids, self.poses, len(self.analytic), x,
                        x_start, th, self.slack, ccd, self._cache, self._m_count, self._m_list,
                        self._m_mask, nt, self._m_planes], device=self.device)
@@ -436,14 +437,14 @@ class ObstacleContact:
 
             self._a_count.zero_()
             self._ai_count.zero_()
-            wp.launch(analytic_far_kernel(self._far_kinds, self._update), m.num_vertices,
+            launch(analytic_far_kernel(self._far_kinds, self._update), m.num_vertices,
                       [self._analytic_reach, x, x_start, m.inv_mass, th, sl, ccd, self._a_count,
                        self._a_list, margin, self._ai_count, self._ai_list], device=self.device)
-            wp.launch(analytic_planes_kernel, nt,
+            launch(analytic_planes_kernel, nt,
                       [self._analytic_data, self._analytic_reach, self.poses, x, x_start, th, ccd,
                        self._ai_count, self._ai_list, nt, self._a_planes], device=self.device)
             pl = self._a_planes
-            wp.launch(planes_to_record_kernel, nt,
+            launch(planes_to_record_kernel, nt,
                       [x, pl.point, pl.normal, pl.ref, pl.friction, self.restitution,
                        len(self.analytic), 0, self._ai_count, self._ai_list, margin, nt, record],
                       device=self.device)
@@ -451,16 +452,16 @@ class ObstacleContact:
             from .mesh_contact import mesh_far_kernel, mesh_planes_kernel
 
             self._m_count.zero_()
-            wp.launch(mesh_far_kernel(self._mesh_moving, self._update), m.num_vertices,
+            launch(mesh_far_kernel(self._mesh_moving, self._update), m.num_vertices,
                       [self._mesh_reach, x, x_start, m.inv_mass, th, sl, 0, ccd, margin,
                        self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
                        self._m_mask], device=self.device)
-            wp.launch(mesh_planes_kernel, nt,
+            launch(mesh_planes_kernel, nt,
                       [self._mesh_data, self._mesh_ids, self.poses, len(self.analytic), x,
                        x_start, th, sl + margin, ccd, self._cache, self._m_count, self._m_list,
                        self._m_mask, nt, self._m_planes], device=self.device)
             pl = self._m_planes
-            wp.launch(planes_to_record_kernel, nt,
+            launch(planes_to_record_kernel, nt,
                       [x, pl.point, pl.normal, pl.ref, pl.friction, self.restitution,
                        len(self.meshes), len(self.analytic), self._m_count, self._m_list, margin,
                        nt, record], device=self.device)
@@ -478,11 +479,11 @@ class ObstacleContact:
 
             nt = self._near_threads
             if self._analytic_data is not None:
-                wp.launch(project_planes_kernel, nt,
+                launch(project_planes_kernel, nt,
                           [x, self._a_planes, len(self.analytic), self._ai_count, self._ai_list,
                            nt], device=self.device)
             if self._mesh_data is not None:
-                wp.launch(project_planes_kernel, nt,
+                launch(project_planes_kernel, nt,
                           [x, self._m_planes, len(self.meshes), self._m_count, self._m_list, nt],
                           device=self.device)
             return
@@ -495,7 +496,7 @@ class ObstacleContact:
             from .motion import obstacle_poses_kernel
 
             self.still.fill_(1)
-            wp.launch(obstacle_poses_kernel, len(self.obstacles),
+            launch(obstacle_poses_kernel, len(self.obstacles),
                       [self._data, self.key_times, self.key_offsets, self.key_rotations, time,
                        self.clock, dt, respond, self.poses, self.reaches, self._last_t1,
                        self.still],
@@ -511,7 +512,7 @@ class ObstacleContact:
             self._a_count.zero_()
             if margin > 0.0:
                 self._ai_count.zero_()
-            wp.launch(analytic_far_kernel(self._far_kinds, self._update), m.num_vertices,
+            launch(analytic_far_kernel(self._far_kinds, self._update), m.num_vertices,
                       [self._analytic_reach, x, x_start, m.inv_mass, th, sl, ccd, self._a_count,
                        self._a_list, margin, self._ai_count, self._ai_list], device=self.device)
         if self._mesh_data is not None:
@@ -520,7 +521,7 @@ class ObstacleContact:
             # no margin for meshes (the iterations reuse this list): a listed vertex that does
             # not touch would pay a BVH query for its plane (measured: PBD +320 % with one)
             self._m_count.zero_()
-            wp.launch(mesh_far_kernel(self._mesh_moving, self._update), m.num_vertices,
+            launch(mesh_far_kernel(self._mesh_moving, self._update), m.num_vertices,
                       [self._mesh_reach, x, x_start, m.inv_mass, th, sl, respond, ccd, 0.0,
                        self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
                        self._m_mask],
@@ -532,7 +533,7 @@ class ObstacleContact:
         if self._analytic_data is not None:
             from .analytic import analytic_near_kernel
 
-            wp.launch(analytic_near_kernel(self._far_kinds, self._update), self._near_threads,
+            launch(analytic_near_kernel(self._far_kinds, self._update), self._near_threads,
                       [self._analytic_data, self._analytic_reach, self.poses, 0, x, x_start, v,
                        dt, th, sl, respond, ccd, self._a_count, self._a_list,
                        self._near_threads], device=self.device)
@@ -541,11 +542,11 @@ class ObstacleContact:
 
             nt = self._near_threads
             self._g_count.zero_()
-            wp.launch(mesh_near_kernel, nt,
+            launch(mesh_near_kernel, nt,
                       [self._mesh_data, x, x_start, v, th, sl, respond, self._cache,
                        self._m_count, self._m_list, self._m_mask, nt, self._g_count,
                        self._g_list, self._g_mask], device=self.device)
-            wp.launch(mesh_general_kernel, nt,
+            launch(mesh_general_kernel, nt,
                       [self._mesh_data, self._mesh_ids, self.poses, len(self.analytic), x,
                        x_start, v, dt, th, sl, respond, ccd, self._cache, self._g_count,
                        self._g_list, self._g_mask, nt], device=self.device)

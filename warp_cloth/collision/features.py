@@ -49,6 +49,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..util import launch
 from .broadphase import ClothBroadPhase
 from .geometry import CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, vt_impact
 from .record import (KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, record_append,
@@ -502,15 +503,15 @@ class FeatureContact:
             return
         d = self.device
         gap = self.thickness + margin
-        wp.launch(feature_world_kernel, self.num_vertices,
+        launch(feature_world_kernel, self.num_vertices,
                   [self.local, self.pose_of, self.contact.poses, self.p0, self.p1], device=d)
         b = self.broad
         b.update(x0, x1, gap)
-        wp.launch(vertex_triangle_kernel, self.num_vertices,
+        launch(vertex_triangle_kernel, self.num_vertices,
                   [b.tri_bvh.id, self.p0, self.p1, self.source, x0, x1, b.tris, gap,
                    self.thickness, self.mu_t, record], device=d)
         if self.num_edges:
-            wp.launch(edge_edge_kernel, self.num_edges,
+            launch(edge_edge_kernel, self.num_edges,
                       [b.edge_bvh.id, self.p0, self.p1, self.fedges, self.source, x0, x1,
                        b.edges, gap, self.thickness, self.mu_t, record], device=d)
 
@@ -521,18 +522,18 @@ class FeatureContact:
         if not self.active:
             return
         self.violated.zero_()
-        wp.launch(rounds_begin_kernel, 1, [self._flags], device=self.device)
+        launch(rounds_begin_kernel, 1, [self._flags], device=self.device)
         wp.capture_while(self._flags[0:1], self._round, state=state, dt=dt, record=record,
                          first=first)
 
     def _round(self, state, dt, record, first):
         d, m = self.device, self.model
-        wp.launch(jacobi_project_kernel, self.threads,
+        launch(jacobi_project_kernel, self.threads,
                   [record, first, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
                    RESOLVE_TOL * self.thickness, self.threads, self.moved], device=d)
-        wp.launch(inelastic_apply_kernel, m.num_vertices,
+        launch(inelastic_apply_kernel, m.num_vertices,
                   [state.x, state.v, self.acc, self.cnt, self.moved, 1.0 / dt], device=d)
-        wp.launch(round_done_kernel, 1,
+        launch(round_done_kernel, 1,
                   [self.violated, self._flags, self.rounds, MAX_ROUNDS, self.counters],
                   device=d)
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..util import launch
 from .record import ContactRecord
 
 wp.set_module_options({"enable_backward": False})
@@ -228,13 +229,13 @@ class ImpactZones:
     def merge(self, rec: ContactRecord, threads: int) -> None:
         """The record's entries merged into the zones."""
         d = self.device
-        wp.launch(zone_mark_kernel, threads, [rec, self.label, self.member, threads], device=d)
+        launch(zone_mark_kernel, threads, [rec, self.label, self.member, threads], device=d)
         for _ in range(UNION_PASSES):
-            wp.launch(zone_union_kernel, threads, [rec, self.label, threads], device=d)
-            wp.launch(zone_jump_kernel, len(self.label), [self.label], device=d)
+            launch(zone_union_kernel, threads, [rec, self.label, threads], device=d)
+            launch(zone_jump_kernel, len(self.label), [self.label], device=d)
         # roots settle after the last sweep: two more jumps make every label a root
         for _ in range(2):
-            wp.launch(zone_jump_kernel, len(self.label), [self.label], device=d)
+            launch(zone_jump_kernel, len(self.label), [self.label], device=d)
 
     def move(self, rec: ContactRecord, x0, state, dt: float, counters, slot: int,
              steps=None) -> None:
@@ -245,16 +246,16 @@ class ImpactZones:
         m, d, n = self.model, self.device, len(self.label)
         if steps is None:
             steps = self._one
-        wp.launch(zone_clear_kernel, n, [rec, self.zmass, self.zc0, self.zc1, self.zang,
+        launch(zone_clear_kernel, n, [rec, self.zmass, self.zc0, self.zc1, self.zang,
                                          self.zinert, self.zpinned, self.zsize], device=d)
-        wp.launch(zone_pinned_kernel, n, [rec, self.member, self.label, m.inv_mass, self.zpinned,
+        launch(zone_pinned_kernel, n, [rec, self.member, self.label, m.inv_mass, self.zpinned,
                                           self.zsize], device=d)
-        wp.launch(zone_sums_kernel, n, [self.member, self.label, x0, state.x, m.inv_mass,
+        launch(zone_sums_kernel, n, [self.member, self.label, x0, state.x, m.inv_mass,
                                         self.zpinned, self.zmass, self.zc0, self.zc1], device=d)
-        wp.launch(zone_moments_kernel, n, [self.member, self.label, x0, state.x, m.inv_mass,
+        launch(zone_moments_kernel, n, [self.member, self.label, x0, state.x, m.inv_mass,
                                            self.zpinned, self.zmass, self.zc0, self.zc1,
                                            self.zang, self.zinert], device=d)
-        wp.launch(zone_move_kernel, n, [rec, self.member, self.label, x0, state.x, state.v,
+        launch(zone_move_kernel, n, [rec, self.member, self.label, x0, state.x, state.v,
                                         m.inv_mass, self.zmass, self.zc0, self.zc1, self.zang,
                                         self.zinert, self.zpinned, 1.0 / dt, steps, counters,
                                         slot],

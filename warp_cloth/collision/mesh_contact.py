@@ -64,6 +64,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from ..util import launch
 from .motion import ObstacleData, ObstacleReach
 from .geometry import closest_point_triangle as closest_on_triangle
 from .planes import ContactPlanes
@@ -887,7 +888,7 @@ def mesh_signed_distance(obstacle, local_points, device="cpu") -> np.ndarray:
     mesh = obstacle.wp_mesh(device)
     out = wp.zeros(len(pts), dtype=float, device=device)
     big = float(1e6)
-    wp.launch(mesh_distance_kernel, len(pts),
+    launch(mesh_distance_kernel, len(pts),
               [mesh.id, int(obstacle.closed), wp.array(pts, dtype=wp.vec3, device=device), big, out],
               device=device)
     return out.numpy().astype(np.float64)

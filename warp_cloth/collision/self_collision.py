@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..util import launch
 from .broadphase import (ClothBroadPhase, boxes_overlap, cloth_bounds_kernel, grid_radius,
                          vertex_bounds_kernel, vertex_box)
 from .features import inelastic_apply, inelastic_apply_kernel, jacobi_project_kernel
@@ -660,11 +661,11 @@ class SelfCollision:
         common = [x0, x1]
         if b.method == "grid":
             if vt:
-                wp.launch(self_vt_grid_kernel, m.num_vertices,
+                launch(self_vt_grid_kernel, m.num_vertices,
                           [b.tri_grid.id, b.lowers, b.uppers, b.rmax, *common, b.tris, gap,
                            self.thickness, m.inv_mass, done, record, vt_pairs, npairs], device=d)
             if ee:
-                wp.launch(self_ee_grid_kernel, b.num_edges,
+                launch(self_ee_grid_kernel, b.num_edges,
                           [b.edge_grid.id, b.elowers, b.euppers, b.rmax, *common, b.edges, gap,
                            self.thickness, m.inv_mass, done, record, ee_pairs, npairs], device=d)
         else:
@@ -672,19 +673,19 @@ class SelfCollision:
             if self._in_span:  # allowances from the span's start: only the active part queries
                 active = self._active
                 slack = max(0.0, 0.5 * (float(gap) - self.thickness))
-                wp.launch(active_kernel, m.num_vertices, [x0, x1, self._allow, slack, active],
+                launch(active_kernel, m.num_vertices, [x0, x1, self._allow, slack, active],
                           device=d)
             if vt:
-                wp.launch(self_vt_bvh_kernel, m.num_vertices,
+                launch(self_vt_bvh_kernel, m.num_vertices,
                           [b.tri_bvh.id, *common, b.tris, gap, self.thickness, m.inv_mass, done,
                            active, record, vt_pairs, npairs], device=d)
                 if self._in_span:
-                    wp.launch(self_tv_bvh_kernel, b.num_tris,
+                    launch(self_tv_bvh_kernel, b.num_tris,
                               [b.vertex_bvh.id, b.lowers, b.uppers, *common, b.tris, gap,
                                self.thickness,
                                m.inv_mass, done, active, record, vt_pairs, npairs], device=d)
             if ee:
-                wp.launch(self_ee_bvh_kernel, b.num_edges,
+                launch(self_ee_bvh_kernel, b.num_edges,
                           [b.edge_bvh.id, *common, b.edges, gap, self.thickness, m.inv_mass,
                            done, active, record, ee_pairs, npairs], device=d)
 
@@ -764,7 +765,7 @@ class SelfCollision:
         d = self.device
         self._nmoved.zero_()
         self._still.zero_()
-        wp.launch(clearance_moved_kernel, self.model.num_vertices,
+        launch(clearance_moved_kernel, self.model.num_vertices,
                   [x, self._ref, self._reach, CLEAR_FULL_FRACTION, self._moved, self._still,
                    self._nmoved, self._full], device=d)
         wp.capture_if(self._full, on_true=self._clear_full, on_false=self._clear_part, x=x)
@@ -773,10 +774,10 @@ class SelfCollision:
         d, b = self.device, self.broad
         half = 0.5 * self.clearance
         tl, tu, el, eu, vl, vu = self._clear_boxes
-        wp.launch(cloth_bounds_kernel, b.num_tris + b.num_edges,
+        launch(cloth_bounds_kernel, b.num_tris + b.num_edges,
                   [x, x, b.tris, b.edges, b.num_tris, half, tl, tu, el, eu], device=d)
         if vertices:
-            wp.launch(vertex_bounds_kernel, len(x), [x, x, half, vl, vu], device=d)
+            launch(vertex_bounds_kernel, len(x), [x, x, half, vl, vu], device=d)
         if self._clear_bvh is None:
             self._clear_bvh = (wp.Bvh(tl, tu), wp.Bvh(el, eu), wp.Bvh(vl, vu))
         else:
@@ -787,19 +788,19 @@ class SelfCollision:
     def _clear_full(self, x):
         # every pair within the clearance; the result is the next passes' reference
         d, b, m = self.device, self.broad, self.model
-        wp.launch(fill_kernel, len(self._allow), [self._allow, self.reach_max], device=d)
+        launch(fill_kernel, len(self._allow), [self._allow, self.reach_max], device=d)
         half = self._clear_bounds(x, self._clear_bvh is None)
         tb, eb = self._clear_bvh[:2]
         el, eu = self._clear_boxes[2:4]
         if b.num_tris:
-            wp.launch(clearance_vt_kernel, m.num_vertices,
+            launch(clearance_vt_kernel, m.num_vertices,
                       [tb.id, x, b.tris, m.inv_mass, half, self.thickness, self._no_int,
                        self._allow], device=d)
         if b.num_edges:
-            wp.launch(clearance_ee_kernel, b.num_edges,
+            launch(clearance_ee_kernel, b.num_edges,
                       [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._no_int,
                        self._allow], device=d)
-        wp.launch(clearance_keep_kernel, m.num_vertices,
+        launch(clearance_keep_kernel, m.num_vertices,
                   [x, self._allow, self._ref, self._allow_ref, self._full],
                   device=d)
 
@@ -807,21 +808,21 @@ class SelfCollision:
         # the pairs with a vertex that moved since the last full pass; the others keep that
         # pass's allowance less the farthest a still vertex went
         d, b, m = self.device, self.broad, self.model
-        wp.launch(clearance_start_kernel, m.num_vertices, [self._allow_ref, self._still,
+        launch(clearance_start_kernel, m.num_vertices, [self._allow_ref, self._still,
                                                           self._allow], device=d)
         half = self._clear_bounds(x, True)
         tb, eb, vb = self._clear_bvh
         el, eu = self._clear_boxes[2:4]
         if b.num_tris:
-            wp.launch(clearance_vt_kernel, m.num_vertices,
+            launch(clearance_vt_kernel, m.num_vertices,
                       [tb.id, x, b.tris, m.inv_mass, half, self.thickness, self._moved,
                        self._allow], device=d)
             tl, tu = self._clear_boxes[:2]
-            wp.launch(clearance_tv_kernel, b.num_tris,
+            launch(clearance_tv_kernel, b.num_tris,
                       [vb.id, tl, tu, x, b.tris, m.inv_mass, self.thickness, self._moved,
                        self._allow], device=d)
         if b.num_edges:
-            wp.launch(clearance_ee_kernel, b.num_edges,
+            launch(clearance_ee_kernel, b.num_edges,
                       [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._moved,
                        self._allow], device=d)
 
@@ -838,13 +839,13 @@ class SelfCollision:
         start, steps, flag = self._span
         d = self.device
         if self._k == 0:  # a frame starts a span (the previous frame ended with a response)
-            wp.launch(span_begin_kernel, len(start), [x_start, start, steps, flag], device=d)
+            launch(span_begin_kernel, len(start), [x_start, start, steps, flag], device=d)
         self._k += 1
         last = self._k == self.frame_steps
         if last:
             self._k = 0
         self.hold(state)
-        wp.launch(span_step_kernel, len(start), [state.x, state.v, self.acc, self.cnt, start,
+        launch(span_step_kernel, len(start), [state.x, state.v, self.acc, self.cnt, start,
                                                  self._reach, self._allow, int(last), steps,
                                                  flag], device=d)
         wp.capture_if(flag, self._span_resolve, state=state, dt=dt)
@@ -868,24 +869,24 @@ class SelfCollision:
             self._gap = self.thickness
         if self.allowances:
             self.clear(state.x)
-        wp.launch(span_begin_kernel, len(start), [state.x, start, steps, flag],
+        launch(span_begin_kernel, len(start), [state.x, start, steps, flag],
                   device=self.device)
 
     def hold(self, state) -> None:
         """One Jacobi projection of the contacts the last `resolve` found (no detection), into
         ``acc`` / ``cnt``: keeps a layer resting on another from sinking into it between the
         responses of a span (`CollisionStage.plan`, whose `span_step_kernel` applies it)."""
-        wp.launch(jacobi_project_kernel, self.threads,
+        launch(jacobi_project_kernel, self.threads,
                   [self.record, 0, state.x, self.model.inv_mass, self.acc, self.cnt, self._held,
                    0.01 * self.thickness, self.threads, self._no_moved], device=self.device)
 
     def _project(self, state, dt):
         m, d = self.model, self.device
         for _ in range(self.iterations):
-            wp.launch(jacobi_project_kernel, self.threads,
+            launch(jacobi_project_kernel, self.threads,
                       [self.record, 0, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
                        0.01 * self.thickness, self.threads, self._no_moved], device=d)
-            wp.launch(inelastic_apply_kernel, m.num_vertices,
+            launch(inelastic_apply_kernel, m.num_vertices,
                       [state.x, state.v, self.acc, self.cnt, self._no_moved, 0.0], device=d)
 
     def resolve(self, state, x_start, dt: float, steps=None) -> None:
@@ -899,13 +900,13 @@ class SelfCollision:
         graph both are conditional nodes: no host read, and a step without contacts pays one
         round. Run eagerly, Warp reads the flags on the host."""
         m, d = self.model, self.device
-        wp.launch(step_begin_kernel, max(len(STAT_KEYS), 1),
+        launch(step_begin_kernel, max(len(STAT_KEYS), 1),
                   [self.done, self.violated, self._flags, self.counters], device=d)
         steps = self._one if steps is None else steps
         wp.capture_while(self._flags[1:2], self._round, state=state, x_start=x_start, dt=dt)
         wp.capture_if(self._flags[2:3], self._fallback, state=state, x_start=x_start, dt=dt,
                       steps=steps)
-        wp.launch(accumulate_kernel, len(STAT_KEYS), [self.counters, self.totals], device=d)
+        launch(accumulate_kernel, len(STAT_KEYS), [self.counters, self.totals], device=d)
 
     #: `step`'s ``obstacles`` callable (None: no obstacles)
     _obstacles = None
@@ -921,7 +922,7 @@ class SelfCollision:
             # detection checks the layers again. A round whose projection moved nothing
             # (the last) leaves nothing for this to move: the rounds end clear of both
             self._obstacles()
-        wp.launch(round_end_kernel, 1, [self.record, self.violated, self.done, self.counters,
+        launch(round_end_kernel, 1, [self.record, self.violated, self.done, self.counters,
                                         self._flags, self.rounds], device=self.device)
 
     def _fallback(self, state, x_start, dt, steps):
@@ -940,7 +941,7 @@ class SelfCollision:
             self.zones.move(self.record, x_start, state, dt, self.counters, I_ZONES, steps)
         self.record.count.zero_()
         self.detect(x_start, state.x, gap, self.record, self.done)
-        wp.launch(revert_kernel, self.threads,
+        launch(revert_kernel, self.threads,
                   [self.record, state.x, state.v, x_start, m.inv_mass, self.counters, I_FALLBACK,
                    self.threads], device=d)
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..util import launch
+
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 
@@ -89,7 +91,7 @@ class SpringForce:
     def eval(self, x, v, f, time=None, damping: float | None = None):
         m = self.model
         c = m.spring_damping if damping is None else damping
-        wp.launch(
+        launch(
             spring_forces_kernel,
             m.num_springs,
             [x, v, m.spring_indices, m.spring_rest_length, m.spring_k, float(c), f],
@@ -98,7 +100,7 @@ class SpringForce:
 
     def energy(self, x, out):
         m = self.model
-        wp.launch(
+        launch(
             spring_energy_kernel,
             m.num_springs,
             [x, m.spring_indices, m.spring_rest_length, m.spring_k, out],

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from ..util import launch
+
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 
@@ -118,7 +120,7 @@ class WindForce:
 
     def eval(self, x, v, f, time, **_):
         w, m = self.wind, self.model
-        wp.launch(
+        launch(
             wind_forces_kernel,
             m.num_triangles,
             [x, v, m.tri_indices, time, wp.vec3(*w.velocity), 0.5 * w.air_density,

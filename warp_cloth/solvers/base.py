@@ -28,7 +28,7 @@ import math
 import warp as wp
 
 from . import common
-from ..util import positive_finite
+from ..util import launch, positive_finite
 
 
 def check_dt(dt) -> float:
@@ -145,7 +145,7 @@ class Solver:
         if self.corrections or stage is not None:  # a fused stage writes the start itself
             wp.copy(self._x_start, state.x)
         if m.pin_path is not None and len(m.pins):
-            wp.launch(
+            launch(
                 common.move_pins_kernel,
                 len(m.pins),
                 [state.x, state.v, m.pin_indices, m.pin_times, m.pin_keys, state.time, dt],
@@ -160,7 +160,7 @@ class Solver:
                 after = getattr(c, "after_contact", None)
                 if after is not None:
                     after(state, self._x_start, dt, stage)
-        wp.launch(common.advance_time_kernel, 1, [state.time, dt], device=self.device)
+        launch(common.advance_time_kernel, 1, [state.time, dt], device=self.device)
         return state
 
     def frame_end(self) -> list:

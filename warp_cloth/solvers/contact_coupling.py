@@ -99,7 +99,7 @@ import warp as wp
 
 from ..collision.features import pin_held
 from ..collision.record import KIND_VERTEX_OBSTACLE, ContactRecord
-from ..util import positive_finite
+from ..util import launch, positive_finite
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
@@ -669,7 +669,7 @@ class ContactCoupling:
         prediction kept (restitution reads the speed a vertex arrives with from it)."""
         self.stage.detect(x_start, x_pred, dt, time)
         if self.sag_cap > 0.0:
-            wp.launch(sag_apply_kernel, self.threads,
+            launch(sag_apply_kernel, self.threads,
                       [self.record, self.sag, self.sources, self.threads], device=self.device)
         self.active.zero_()
         wp.copy(self.x_pred, x_pred)
@@ -680,7 +680,7 @@ class ContactCoupling:
             if sc is not None and self.stage.self_in_solve:
                 sc.detect(x_start, x_pred, sc.thickness + self.stage.solve_margin,
                           self.self_record)
-                wp.launch(add_overflow_kernel, 1, [self.self_record, self.self_dropped],
+                launch(add_overflow_kernel, 1, [self.self_record, self.self_dropped],
                           device=self.device)
             self.self_on.zero_()
 
@@ -691,14 +691,14 @@ class ContactCoupling:
         self.vblock.zero_()
         self.nblock.zero_()
         self.active.zero_()
-        wp.launch(newton_contact_kernel, self.threads,
+        launch(newton_contact_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, *self._args(dt), b, diag, self.vblock,
                    self.nblock, self.active,
                    self.pairs_on if self.pairs_on is not None else self._no_flags],
                   device=self.device)
         self._dt = dt
         if self.self_record is not None:
-            wp.launch(newton_contact_kernel, self.self_threads,
+            launch(newton_contact_kernel, self.self_threads,
                       [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
                        self.self_threads, b, diag, self.vblock, self.nblock, self.active,
                        self.self_on], device=self.device)
@@ -752,12 +752,12 @@ class ContactCoupling:
         activity (`add_newton`; projective dynamics gives them lumped diagonal blocks instead,
         `pd_contact_kernel`, and skips them here), and the self-contacts."""
         if self.pairs_on is not None and self.pairs_in_operator:
-            wp.launch(pair_matvec_kernel, self.threads,
+            launch(pair_matvec_kernel, self.threads,
                       [self.record, self.pairs_on, self.model.inv_mass,
                        self.kappa / (self._dt * self._dt), self.threads, x, out],
                       device=self.device)
         if self.self_record is not None:
-            wp.launch(pair_matvec_kernel, self.self_threads,
+            launch(pair_matvec_kernel, self.self_threads,
                       [self.self_record, self.self_on, self.model.inv_mass,
                        self.kappa / (self._dt * self._dt), self.self_threads, x, out],
                       device=self.device)
@@ -773,7 +773,7 @@ class ContactCoupling:
         (projective dynamics): also mark the entries whose vertex the other forces at the end
         of the last step drive past static friction (`slide`, read by `pd_local`). ``project``
         (Newton): a vertex arriving at its surface this step starts on its constraint's plane."""
-        wp.launch(friction_guess_kernel, self.threads,
+        launch(friction_guess_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, self.lam, self.sources, dt * dt,
                    f_drive, self.threads, disp, self.f_other if classify else self._no_vec,
                    wp.vec3(*self.model.gravity), self.slide if classify else self._no_flags,
@@ -788,11 +788,11 @@ class ContactCoupling:
     def energy_configs(self, x, x_try, out, dt: float, slot: int = 0) -> None:
         """`energy` at ``x`` added to ``out[slot]`` and at each row ``j`` of ``x_try`` to
         ``out[slot + j + 1]``: one launch a record (a line search's candidates)."""
-        wp.launch(contact_energy_kernel, self.threads,
+        launch(contact_energy_kernel, self.threads,
                   [self.record, x, x_try, self.model.inv_mass, *self._args(dt), out, slot],
                   device=self.device)
         if self.self_record is not None:
-            wp.launch(contact_energy_kernel, self.self_threads,
+            launch(contact_energy_kernel, self.self_threads,
                       [self.self_record, x, x_try, self.model.inv_mass, *self._args(dt)[:-1],
                        self.self_threads, out, slot], device=self.device)
 
@@ -802,20 +802,20 @@ class ContactCoupling:
         entry still approaching its surface. ``time``: the state's time array (wind reads it)."""
         m = self.model
         f = self.f_other
-        wp.launch(weight_kernel, m.num_vertices, [m.mass, wp.vec3(*m.gravity), f],
+        launch(weight_kernel, m.num_vertices, [m.mass, wp.vec3(*m.gravity), f],
                   device=self.device)
         for term in m.force_terms:
             term.eval(x, v, f, time)
         self.lam.zero_()
-        wp.launch(normal_force_kernel, self.threads,
+        launch(normal_force_kernel, self.threads,
                   [self.record, x, m.inv_mass, self.kappa / (dt * dt), self.threads,
                    self.sources, f, self.lam], device=self.device)
         if self.sag_cap > 0.0:
             self.sag.zero_()
-            wp.launch(sag_update_kernel, self.threads,
+            launch(sag_update_kernel, self.threads,
                       [self.record, x, self.model.inv_mass, self.sag_cap, self.sources,
                        self.threads, self.sag], device=self.device)
-        wp.launch(contact_velocity_kernel, self.threads,
+        launch(contact_velocity_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, 1.0 / dt,
                    self.stage.contact.slack if self.stage.contact is not None else 0.0,
                    self.x_pred, self.threads, v],
@@ -825,21 +825,21 @@ class ContactCoupling:
     def pd_local(self, x, f, objective, slot: int, dt: float) -> None:
         """Forces into ``f``, this iteration's blocks into `vblock`, ``E_c`` into the objective."""
         self.vblock.zero_()
-        wp.launch(pd_contact_kernel, self.threads,
+        launch(pd_contact_kernel, self.threads,
                   [self.record, x, self.model.inv_mass, *self._args(dt), f, self.vblock,
                    objective, slot, self._no_flags,
                    self.slide if self._classified else self._no_flags,
                    1.0 / self.kappa], device=self.device)
         if self.self_record is not None:
             self._dt = dt
-            wp.launch(pd_contact_kernel, self.self_threads,
+            launch(pd_contact_kernel, self.self_threads,
                       [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
                        self.self_threads, f, self.vblock, objective, slot, self.self_on,
                        self._no_flags, 1.0], device=self.device)
 
     def invert_diagonal(self, blocks, free, dinv) -> None:
         """``dinv = (blocks + vblock)^-1`` (the global matrix's diagonal with contact)."""
-        wp.launch(block_inverse_kernel, self.model.num_vertices, [blocks, self.vblock, free, dinv],
+        launch(block_inverse_kernel, self.model.num_vertices, [blocks, self.vblock, free, dinv],
                   device=self.device)
 
     def host_factors(self, free_index):

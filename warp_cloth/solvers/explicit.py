@@ -21,6 +21,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..util import launch
 from .base import Solver
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -98,7 +99,7 @@ class SymplecticEuler(Solver):
             fused.integrate_and_apply(state, self._x_start, self.f, wp.vec3(*m.gravity),
                                       math.exp(-m.damping * dt), dt, symplectic_velocity)
             return
-        wp.launch(
+        launch(
             integrate_symplectic_kernel,
             m.num_vertices,
             [state.x, state.v, self.f, m.inv_mass, wp.vec3(*m.gravity),

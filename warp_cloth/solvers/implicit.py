@@ -113,6 +113,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..util import launch
 from .base import Solver
 from .common import spring_energy64_kernel, spring_stretch64, to_float64_kernel
 from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
@@ -842,12 +843,12 @@ class ImplicitEuler(Solver):
         """b = -grad F(x), the Newton matrix at x (blocks, diagonal, inverse) and the residual."""
         m, d, A = self.model, self.device, self.A
         n = m.num_vertices
-        wp.launch(newton_init_kernel, n,
+        launch(newton_init_kernel, n,
                   [x, self.x_hat, self.disp, 1 if x is self._iterate else 0, m.mass, self.f_ext,
                    self._scale, self.b, A.diag, self.dx],
                   device=d)
         if m.num_springs:
-            wp.launch(spring_newton_kernel, m.num_springs,
+            launch(spring_newton_kernel, m.num_springs,
                       [x, m.spring_indices, m.spring_rest_length, m.spring_k,
                        0 if self.exact_hessian else 1, self.b, A.slots, A.coef], device=d)
         for t in self.implicit_terms:
@@ -859,11 +860,11 @@ class ImplicitEuler(Solver):
         if hessian:
             for t in self.implicit_terms:
                 t.add_diagonal(A.diag)
-            wp.launch(finish_system_kernel, n,
+            launch(finish_system_kernel, n,
                       [A.diag, A.offsets, A.coef, self.b, m.inv_mass, A.free, self._dt2, A.diag_inv,
                        self.residuals, slot, *vb], device=d)
         else:
-            wp.launch(residual_only_kernel, n,
+            launch(residual_only_kernel, n,
                       [self.b, m.inv_mass, self._dt2, self.residuals, slot, *vb], device=d)
 
     def objective(self, x) -> float:
@@ -873,15 +874,15 @@ class ImplicitEuler(Solver):
             self._obj = wp.zeros(1, dtype=wp.float64, device=d)
             self._obj32 = wp.zeros(1, dtype=wp.float32, device=d)
         self._obj.zero_()
-        wp.launch(objective_kernel, m.num_vertices,
+        launch(objective_kernel, m.num_vertices,
                   [x, self.x_hat, m.mass, m.inv_mass, self.f_ext, self._scale, self._obj], device=d)
         if m.num_springs:
-            wp.launch(spring_energy64_kernel, m.num_springs,
+            launch(spring_energy64_kernel, m.num_springs,
                       [x, m.spring_indices, m.spring_rest_length, m.spring_k, self._obj], device=d)
         for t in self.implicit_terms:
             self._obj32.zero_()
             t.energy(x, self._obj32)
-            wp.launch(to_float64_kernel, 1, [self._obj32, self._obj], device=d)
+            launch(to_float64_kernel, 1, [self._obj32, self._obj], device=d)
         if self._coupling is not None and self.collision is not None:
             self._coupling.energy(x, self._obj, self._dt)
         return float(self._obj.numpy()[0])
@@ -916,7 +917,7 @@ class ImplicitEuler(Solver):
         self.A.mass_scale = self._scale
         for t in self.explicit_terms:
             t.eval(state.x, state.v, self.f_ext, state.time)
-        wp.launch(begin_step_kernel, n,
+        launch(begin_step_kernel, n,
                   [state.x, state.v, m.mass, m.inv_mass, wp.vec3(*m.gravity), dt,
                    1 if self.initial_guess == "inertial" else 0, self.f_ext, self.x_prev,
                    self.x_hat, self.disp], device=d)
@@ -1006,7 +1007,7 @@ class ImplicitEuler(Solver):
                             self._guard["gradient"] += 1
                             switched = True
                 step = self._ls_step
-            wp.launch(newton_update_kernel, n,
+            launch(newton_update_kernel, n,
                       [x, self.dx, step, self.A.free, self.dx_max, k, self.disp],
                       device=d)
             done = k + 1
@@ -1049,7 +1050,7 @@ class ImplicitEuler(Solver):
             elif self.measure_residual:
                 self._assemble(x, done, hessian=False)
                 lazy = done
-        wp.launch(end_step_kernel, n,
+        launch(end_step_kernel, n,
                   [x, self.x_prev, m.inv_mass, 1.0 / dt, math.exp(-m.damping * dt), state.v,
                    self.f_ext, self.disp], device=d)
         if coupling is not None:
@@ -1088,18 +1089,18 @@ class ImplicitEuler(Solver):
         32 x 32 sheet at k = 1e6 N/m, dt = 1/30 s: F 42-177 J at the inertial guess against
         1.5 J at ``x0``) and Newton spent its iterations coming down from there."""
         n, d = self.model.num_vertices, self.device
-        wp.launch(guess_direction_kernel, n, [v, self.disp, self.A.free, dt, self.dx], device=d)
+        launch(guess_direction_kernel, n, [v, self.disp, self.A.free, dt, self.dx], device=d)
         steps = wp.vec4(*LS_STEPS)
         self._ls_energies(x, steps)
-        wp.launch(guess_select_kernel, 1, [self._ls_energy, steps, self._ls_step], device=d)
-        wp.launch(newton_update_kernel, n,
+        launch(guess_select_kernel, 1, [self._ls_energy, steps, self._ls_step], device=d)
+        launch(newton_update_kernel, n,
                   [x, self.dx, self._ls_step, self.A.free, self.dx_max, -1, self.disp], device=d)
 
     def _descend(self, x, k: int) -> bool:
         """After the inner solve's direction failed the line search: the preconditioned
         gradient direction ``D^-1 b`` into ``dx``, searched the same way (full lengths, then
         `LS_RETRY` times shorter). True if a step was found (``_ls_step`` holds it)."""
-        wp.launch(gradient_direction_kernel, self.model.num_vertices,
+        launch(gradient_direction_kernel, self.model.num_vertices,
                   [self.b, self.A.diag_inv, self.dx], device=self.device)
         for scale in (1.0, LS_RETRY):
             self._line_search(x, k, scale, 1)
@@ -1119,7 +1120,7 @@ class ImplicitEuler(Solver):
         g = self._guard
         s = 1.0
         for target in (0.5, 0.25, 0.125, 0.0625, 0.03125, 0.015625, 0.0):
-            wp.launch(shorten_step_kernel, n,
+            launch(shorten_step_kernel, n,
                       [x, self.x_prev, v, self.disp, self.A.free, dt, target / s], device=d)
             s = target
             if s == 0.0 or self._energy_gain(x, v, dt) <= self._guard_eps:
@@ -1131,7 +1132,7 @@ class ImplicitEuler(Solver):
 
     def _restart(self, x, dt: float) -> None:
         m = self.model
-        wp.launch(restart_kernel, m.num_vertices,
+        launch(restart_kernel, m.num_vertices,
                   [x, self.x_prev, self.x_hat, m.inv_mass, self.f_ext, dt,
                    1 if self.initial_guess == "inertial" else 0, self.disp], device=self.device)
 
@@ -1155,18 +1156,18 @@ class ImplicitEuler(Solver):
         iterate minus at the start of the step: one host read."""
         m, d, e = self.model, self.device, self._energy
         e.zero_()
-        wp.launch(step_energy_kernel, m.num_vertices,
+        launch(step_energy_kernel, m.num_vertices,
                   [x, self.x_prev, v, self.disp, m.mass, m.inv_mass, self.f_ext,
                    1.0 / dt, math.exp(-m.damping * dt), e], device=d)
         for j, xc in enumerate((self.x_prev, x)):
             if m.num_springs:
-                wp.launch(spring_energy64_kernel, m.num_springs,
+                launch(spring_energy64_kernel, m.num_springs,
                           [xc, m.spring_indices, m.spring_rest_length, m.spring_k, e[j:j + 1]],
                           device=d)
             for t in self.implicit_terms:
                 self._energy32.zero_()
                 t.energy(xc, self._energy32)
-                wp.launch(to_float64_kernel, 1, [self._energy32, e[j:j + 1]], device=d)
+                launch(to_float64_kernel, 1, [self._energy32, e[j:j + 1]], device=d)
         e0, e1 = (float(v) for v in e.numpy())
         return e1 - e0
 
@@ -1222,7 +1223,7 @@ class ImplicitEuler(Solver):
         self.f_ext.zero_()
         for t in self.explicit_terms:
             t.eval(state.x, state.v, self.f_ext, state.time)
-        wp.launch(begin_step_kernel, m.num_vertices,
+        launch(begin_step_kernel, m.num_vertices,
                   [state.x, state.v, m.mass, m.inv_mass, wp.vec3(*m.gravity), dt,
                    1 if self.initial_guess == "inertial" else 0, self.f_ext, self.x_prev,
                    self.x_hat, self.disp], device=self.device)
@@ -1236,7 +1237,7 @@ class ImplicitEuler(Solver):
         `ls_select_kernel`): the chosen step goes to ``_ls_step`` (and ``_ls_taken[k]``)."""
         steps = wp.vec4(*(scale * a for a in LS_STEPS))
         self._ls_energies(x, steps)
-        wp.launch(ls_select_kernel, 1, [self._ls_energy, steps, LS_ARMIJO, self._ls_step, k,
+        launch(ls_select_kernel, 1, [self._ls_energy, steps, LS_ARMIJO, self._ls_step, k,
                                         self._ls_taken, int(reject)],
                   device=self.device)
 
@@ -1246,11 +1247,11 @@ class ImplicitEuler(Solver):
         m, d, n = self.model, self.device, self.model.num_vertices
         E = self._ls_energy
         E.zero_()
-        wp.launch(ls_vertex_kernel, n,
+        launch(ls_vertex_kernel, n,
                   [x, self.dx, self.disp, self.b, m.mass, self.A.free, self.f_ext, self._scale,
                    steps, self._ls_try, E], device=d)
         if m.num_springs:
-            wp.launch(ls_spring_kernel, m.num_springs,
+            launch(ls_spring_kernel, m.num_springs,
                       [x, self._ls_try, m.spring_indices, m.spring_rest_length, m.spring_k, E],
                       device=d)
         configs = [x] + [self._ls_try[j] for j in range(len(LS_STEPS))]
@@ -1262,7 +1263,7 @@ class ImplicitEuler(Solver):
                     continue
                 for j, xc in enumerate(configs):
                     t.energy(xc, self._ls_views[j])
-            wp.launch(add_float32_kernel, len(configs), [self._ls_energy32, E], device=d)
+            launch(add_float32_kernel, len(configs), [self._ls_energy32, E], device=d)
         if self._coupling is not None and self.collision is not None:
             self._coupling.energy_configs(x, self._ls_try, E, self._dt)
 

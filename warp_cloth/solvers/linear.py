@@ -40,6 +40,8 @@ import math
 import numpy as np
 import warp as wp
 
+from ..util import launch
+
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = [
@@ -192,7 +194,7 @@ class _Base:
 
     def _bnorm2(self, A, b):
         self.bnorm.zero_()
-        wp.launch(_norm2_kernel, A.n, [b, A.free, self.bnorm, 0], device=A.device)
+        launch(_norm2_kernel, A.n, [b, A.free, self.bnorm, 0], device=A.device)
 
     def solve(self, A, b, x, iterations: int | None = None, tolerance=..., ) -> dict:
         """Solve ``A x = b`` starting from ``x`` (updated in place). Returns
@@ -240,7 +242,7 @@ class JacobiSolver(_Base):
         while k < iters:
             A.matvec(x, self.ax)
             om = 1.0 if fallback else omegas[k]
-            wp.launch(_jacobi_update_kernel, A.n,
+            launch(_jacobi_update_kernel, A.n,
                       [x, self.last, b, self.ax, A.diag_inv, A.free, self.alpha, om, sums, k],
                       device=d)
             k += 1
@@ -265,7 +267,7 @@ class JacobiSolver(_Base):
             A.matvec(x, self.ax)
             tmp = self.s2
             tmp.zero_()
-            wp.launch(_residual_kernel, A.n, [b, self.ax, A.free, self.r, tmp, 0], device=d)
+            launch(_residual_kernel, A.n, [b, self.ax, A.free, self.r, tmp, 0], device=d)
             res = math.sqrt(float(tmp.numpy()[0])) / bn
         return {"iterations": done, "residual": res,
                 "converged": converged or (tol is not None and res < tol), "fallback": fallback}
@@ -331,7 +333,7 @@ class CGSolver(_Base):
         rz, pap, rr = self.s1, self.s2, self.s3
         rz.zero_(), pap.zero_(), rr.zero_(), self.bnorm.zero_()
         A.matvec(x, self.ax)
-        wp.launch(_cg_start_kernel, n,
+        launch(_cg_start_kernel, n,
                   [b, self.ax, A.free, A.diag_inv, self.r, self.z, rz, self.bnorm], device=d)
         fused = getattr(A, "cg_direction", None)
         bn = None
@@ -341,9 +343,9 @@ class CGSolver(_Base):
         for k in range(iters):
             if fused is None or not fused(self.z, self.p, self.ap, rz, pap, k):
                 A.matvec(self.z, self.ax)
-                wp.launch(_cg_direction_kernel, n,
+                launch(_cg_direction_kernel, n,
                           [self.z, self.ax, A.free, self.p, self.ap, rz, pap, k], device=d)
-            wp.launch(_cg_update_kernel, n,
+            launch(_cg_update_kernel, n,
                       [x, self.r, self.z, self.p, self.ap, A.diag_inv, A.free, rz, pap, rr, k],
                       device=d)
             if check is not None and ((k + 1) % check == 0 or k + 1 == iters):
@@ -596,14 +598,14 @@ class SpringSystemOperator:
         """``H_e = k_e I`` for every spring (the projective-dynamics / Liu 2013 matrix)."""
         m = self.model
         if self.num_springs:
-            wp.launch(_fill_laplacian_kernel, self.num_springs, [m.spring_k, self.slots, self.coef],
+            launch(_fill_laplacian_kernel, self.num_springs, [m.spring_k, self.slots, self.coef],
                       device=self.device)
 
     def spring_blocks(self) -> np.ndarray:
         """The spring blocks ``H_e`` as a ``(S, 3, 3)`` NumPy array (host; tests, benchmarks)."""
         out = wp.zeros(max(self.num_springs, 1), dtype=wp.mat33, device=self.device)
         if self.num_springs:
-            wp.launch(_blocks_kernel, self.num_springs, [self.slots, self.coef, out],
+            launch(_blocks_kernel, self.num_springs, [self.slots, self.coef, out],
                       device=self.device)
         return out.numpy()[: self.num_springs]
 
@@ -611,20 +613,20 @@ class SpringSystemOperator:
         if mass_scale is not None:
             self.mass_scale = float(mass_scale)
         m, d = self.model, self.device
-        wp.launch(_diag_init_kernel, self.n, [m.mass, self.mass_scale, self.diag], device=d)
+        launch(_diag_init_kernel, self.n, [m.mass, self.mass_scale, self.diag], device=d)
         for t in self.folded + self.extra:
             t.add_diagonal(self.diag)
-        wp.launch(_diag_finish_kernel, self.n,
+        launch(_diag_finish_kernel, self.n,
                   [self.offsets, self.coef, self.free, self.diag, self.diag_inv], device=d)
 
     def matvec(self, x, out):
         m, d = self.model, self.device
         if self.vertex_blocks is not None:
-            wp.launch(_spring_matvec_vb_kernel, self.n,
+            launch(_spring_matvec_vb_kernel, self.n,
                       [x, m.mass, self.mass_scale, *self._rows(), self.vertex_blocks, out],
                       device=d)
         else:
-            wp.launch(_spring_matvec_kernel, self.n,
+            launch(_spring_matvec_kernel, self.n,
                       [x, m.mass, self.mass_scale, *self._rows(), out], device=d)
         for t in self.extra:
             t.matvec_add(x, out)
@@ -635,11 +637,11 @@ class SpringSystemOperator:
         if self.extra:
             return False
         if self.vertex_blocks is not None:
-            wp.launch(_spring_cg_direction_vb_kernel, self.n,
+            launch(_spring_cg_direction_vb_kernel, self.n,
                       [z, self.model.mass, self.mass_scale, *self._rows(), self.vertex_blocks,
                        self.free, p, ap, rz, pap, k], device=self.device)
             return True
-        wp.launch(_spring_cg_direction_kernel, self.n,
+        launch(_spring_cg_direction_kernel, self.n,
                   [z, self.model.mass, self.mass_scale, *self._rows(), self.free, p, ap, rz,
                    pap, k], device=self.device)
         return True
@@ -712,7 +714,7 @@ def estimate_spectral_radius(A, alpha: float = 0.66, iterations: int = 60, seed:
         iterations = 0
     for k in range(iterations):
         A.matvec(x, ax)
-        wp.launch(_jacobi_update_kernel, n, [x, last, b, ax, A.diag_inv, A.free, float(alpha), 1.0,
+        launch(_jacobi_update_kernel, n, [x, last, b, ax, A.diag_inv, A.free, float(alpha), 1.0,
                                              sums, k], device=d)
     r = np.sqrt(sums.numpy())
     r = r[-tail:]

@@ -103,6 +103,7 @@ import warp as wp
 from ..forces.springs import SpringForce
 from ..limits import color_constraints, edge_projection
 from ..tethers import PinStretch, model_tether_anchors, tether_anchors, tether_kernel  # noqa: F401 (tether_anchors re-exported)
+from ..util import launch
 from .base import Solver
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -484,21 +485,21 @@ class PositionBased(Solver):
             if self.gauss_seidel:
                 offs = self.color_offsets
                 for c in range(len(offs) - 1):
-                    wp.launch(gs_distance_kernel, int(offs[c + 1] - offs[c]),
+                    launch(gs_distance_kernel, int(offs[c + 1] - offs[c]),
                               [x, self._cons, self._rest, self._compliance, self._lambda,
                                m.inv_mass, inv_dt2, self.use_lambda, int(offs[c])], device=d)
             else:
                 last = (finish_velocity and not projectors and not self.tethers
                         and it == iterations - 1)
-                wp.launch(jacobi_distance_kernel, self.num_constraints,
+                launch(jacobi_distance_kernel, self.num_constraints,
                           [x, self._cons, self._rest, self._compliance, self._lambda, m.inv_mass,
                            self._escale, inv_dt2, self.use_lambda, self._delta], device=d)
-                wp.launch(jacobi_blend_kernel, m.num_vertices,
+                launch(jacobi_blend_kernel, m.num_vertices,
                           [x, v, self._xp, self._delta, self._blend_count, m.inv_mass,
                            self._blend_alpha, 1.0 / dt, int(last)], device=d)
                 fused = fused or last
             if self.tethers:
-                wp.launch(tether_kernel, m.num_vertices,
+                launch(tether_kernel, m.num_vertices,
                           [x, self._tether_anchor, self._tether_rest, self._pin_stretch.scale],
                           device=d)
             for c in projectors:
@@ -521,14 +522,14 @@ class PositionBased(Solver):
         d = self.device
         for term in self._forces:
             term.eval(state.x, state.v, self._f, state.time)
-        wp.launch(predict_kernel, m.num_vertices,
+        launch(predict_kernel, m.num_vertices,
                   [state.x, state.v, self._xp, self._f, m.inv_mass, wp.vec3(*m.gravity),
                    math.exp(-m.damping * dt), dt], device=d)
         fused = False
         if self.num_constraints or self.tethers:
             fused = self._iterate(state.x, state.v, dt, self.iterations, True)
         if not fused:
-            wp.launch(velocity_kernel, m.num_vertices,
+            launch(velocity_kernel, m.num_vertices,
                       [state.x, state.v, self._xp, m.inv_mass, 1.0 / dt], device=d)
 
     def describe(self) -> str:

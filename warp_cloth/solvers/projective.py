@@ -66,7 +66,7 @@ import math
 import numpy as np
 import warp as wp
 
-from ..util import positive_finite
+from ..util import launch, positive_finite
 from .base import Solver
 from .common import spring_energy64_kernel, to_float64_kernel
 from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
@@ -402,19 +402,19 @@ class PDSystemOperator:
         """Rebuild the diagonal for a new ``1/dt^2`` (host work, once per ``dt``)."""
         self.mass_scale = float(mass_scale)
         self.diag.assign((self.mass_scale * self.model.masses + self.laplacian_diag).astype(np.float32))
-        wp.launch(pd_diag_kernel, self.n, [self.diag, self.blocks], device=self.device)
+        launch(pd_diag_kernel, self.n, [self.diag, self.blocks], device=self.device)
         for t in self.extra:
             t.add_diagonal(self.blocks)
-        wp.launch(pd_diag_invert_kernel, self.n, [self.blocks, self.free, self.diag_inv],
+        launch(pd_diag_invert_kernel, self.n, [self.blocks, self.free, self.diag_inv],
                   device=self.device)
 
     def matvec(self, x, out):
         if self.vertex_blocks is not None:
-            wp.launch(pd_matvec_vb_kernel, self.n,
+            launch(pd_matvec_vb_kernel, self.n,
                       [x, self.diag, self.offsets, self.neighbors, self.weights,
                        self.vertex_blocks, out], device=self.device)
         else:
-            wp.launch(pd_matvec_kernel, self.n,
+            launch(pd_matvec_kernel, self.n,
                       [x, self.diag, self.offsets, self.neighbors, self.weights, out],
                       device=self.device)
         for t in self.extra:
@@ -426,7 +426,7 @@ class PDSystemOperator:
         terms or vertex blocks make the fused form unavailable."""
         if self.extra or self.vertex_blocks is not None:
             return False
-        wp.launch(pd_jacobi_sweep_kernel, self.n,
+        launch(pd_jacobi_sweep_kernel, self.n,
                   [x, self.diag, self.offsets, self.neighbors, self.weights, b, self.diag_inv,
                    self.free, float(alpha), sums, int(slot), x_out], device=self.device)
         return True
@@ -733,7 +733,7 @@ class ProjectiveDynamics(Solver):
         m, d, A = self.model, self.device, self.operator
         n = m.num_vertices
         inv_dt2 = 1.0 / (dt * dt)
-        wp.launch(pd_predict_kernel, n,
+        launch(pd_predict_kernel, n,
                   [state.x, state.v, m.inv_mass, wp.vec3(*m.gravity), dt, self.x0, self.y], device=d)
         cc = self._contact()
         A.vertex_blocks = cc.vblock if cc is not None else None
@@ -753,7 +753,7 @@ class ProjectiveDynamics(Solver):
         K = self.iterations
         for k in range(K):
             if m.num_springs:
-                wp.launch(pd_local_kernel, m.num_springs,
+                launch(pd_local_kernel, m.num_springs,
                           [state.x, m.spring_indices, m.spring_rest_length, m.spring_k, self.d,
                            self.f, self._objective, k], device=d)
             for t in self.matrix_terms + self.explicit_terms:
@@ -764,19 +764,19 @@ class ProjectiveDynamics(Solver):
                     cc.invert_diagonal(A.blocks, A.free, A.diag_inv)
             for t in self.energy_terms:
                 t.energy(state.x, self._energy_views[k])
-            wp.launch(pd_rhs_kernel, n,
+            launch(pd_rhs_kernel, n,
                       [state.x, self.y, m.mass, A.free, inv_dt2, self.f, self.b, self.dx,
                        self._objective, self._gradient, k], device=d)
             if k == K - 1 and self.tolerance is not None:
-                wp.launch(pd_residual_kernel, n, [self.b, m.inv_mass, dt * dt, self._res],
+                launch(pd_residual_kernel, n, [self.b, m.inv_mass, dt * dt, self._res],
                           device=d)
-                wp.launch(pd_converged_kernel, 1, [self._res, self.tolerance, self._short],
+                launch(pd_converged_kernel, 1, [self._res, self.tolerance, self._short],
                           device=d)
             if self.direct:
                 self._solve_direct(cc)
             else:
                 self._last_info = self.linear.solve(A, self.b, self.dx)
-            wp.launch(pd_update_kernel, n,
+            launch(pd_update_kernel, n,
                       [state.x, self.dx, self.x0, state.v, m.inv_mass, decay, 1.0 / dt,
                        1 if k == K - 1 else 0, self._omegas[k], self.x_prev], device=d)
         if cc is not None and self.contact_iterations > 0 and not self.direct:
@@ -811,15 +811,15 @@ class ProjectiveDynamics(Solver):
         m, d = self.model, self.device
         out = self._e_views[slot]
         out.zero_()
-        wp.launch(pd_energy_kernel, m.num_vertices,
+        launch(pd_energy_kernel, m.num_vertices,
                   [x, v, m.mass, m.inv_mass, wp.vec3(*m.gravity), out], device=d)
         if m.num_springs:
-            wp.launch(spring_energy64_kernel, m.num_springs,
+            launch(spring_energy64_kernel, m.num_springs,
                       [x, m.spring_indices, m.spring_rest_length, m.spring_k, out], device=d)
         for t in self.energy_terms:  # bending (wind does work and has no energy)
             self._e32.zero_()
             t.energy(x, self._e32)
-            wp.launch(to_float64_kernel, 1, [self._e32, out], device=d)
+            launch(to_float64_kernel, 1, [self._e32, out], device=d)
 
     def _evaluate(self, state, dt, cc, guard=False):
         """Local step and right-hand side at the current iterate (scratch slot K), its residual,
@@ -828,19 +828,19 @@ class ProjectiveDynamics(Solver):
         if guard:  # the energy at the iterate (its velocity: the last update set it)
             self._energy(state.x, state.v, 1)
         if m.num_springs:
-            wp.launch(pd_local_kernel, m.num_springs,
+            launch(pd_local_kernel, m.num_springs,
                       [state.x, m.spring_indices, m.spring_rest_length, m.spring_k, self.d,
                        self.f, self._objective, K], device=d)
         for t in self.matrix_terms + self.explicit_terms:
             t.eval(state.x, state.v, self.f, state.time)
         cc.pd_local(state.x, self.f, self._objective, K, dt)
         cc.invert_diagonal(A.blocks, A.free, A.diag_inv)
-        wp.launch(pd_rhs_kernel, m.num_vertices,
+        launch(pd_rhs_kernel, m.num_vertices,
                   [state.x, self.y, m.mass, A.free, 1.0 / (dt * dt), self.f, self.b, self.dx,
                    self._objective, self._gradient, K], device=d)
-        wp.launch(pd_residual_kernel, m.num_vertices, [self.b, m.inv_mass, dt * dt,
+        launch(pd_residual_kernel, m.num_vertices, [self.b, m.inv_mass, dt * dt,
                                                        self._more_res], device=d)
-        wp.launch(pd_more_kernel, 1, [self._more_res, self.contact_residual,
+        launch(pd_more_kernel, 1, [self._more_res, self.contact_residual,
                                       self.contact_iterations, self._more_flag, self._more,
                                       self._e64, self._energy_eps, int(guard),
                                       self._still(cc)],
@@ -850,7 +850,7 @@ class ProjectiveDynamics(Solver):
         """One more global step and update (velocity set), then `_evaluate`."""
         m = self.model
         self.linear.solve(self.operator, self.b, self.dx)
-        wp.launch(pd_update_kernel, m.num_vertices,
+        launch(pd_update_kernel, m.num_vertices,
                   [state.x, self.dx, self.x0, state.v, m.inv_mass, math.exp(-m.damping * dt),
                    1.0 / dt, 1, 1.0, self.x_prev], device=self.device)
         self._evaluate(state, dt, cc, guard)
