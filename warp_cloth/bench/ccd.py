@@ -25,12 +25,14 @@ Exit status 1 when any false negative is found.
 at t = 1; at the origin, far from it and at mixed offsets; some moving together), every one a
 positive, and prints their misses. Measured here (10,800 of each kind, seed 0): no edge-edge
 miss at ``--angle`` 1e-4 to 1e-7 (136 of a similar set at 1e-7 before the closest points of
-nearly parallel edges were taken from cross products, 2026-11-24); vertex-triangle: none at
-1e-4 and 1e-5, 17 at 1e-6 and 266 at 1e-7, all on the slivers: the plane of a triangle that
-thin is evaluated in float64 with a relative error of about 1e-16 / thinness (the cross product
-of two nearly parallel edges cancels), so a point lying in it is measured up to about
-``1e-16 |ap| / thinness`` away (exact arithmetic on the same rounded inputs: 1e-17 to 3e-15).
-Cloth and obstacle triangles are nowhere near that thin.
+nearly parallel edges were taken from cross products, 2026-11-24); no vertex-triangle miss at
+1e-4 to 1e-11. Before the distance to a triangle carried its round-off bound
+(`geometry.vt_round_off`, 2026-11-24) 17 slivers were missed at 1e-6 and 266 at 1e-7: the
+plane of a triangle that thin is evaluated in float64 with a relative error of about
+1e-16 / thinness (the cross product of two nearly parallel edges cancels), so a point lying in
+it was measured up to about ``1e-16 |ap| / thinness`` away (exact arithmetic on the same
+rounded inputs: 1e-17 to 3e-15) and the advancement stepped past it. The shared queries'
+counts did not change with the bound (277 false positives).
 """
 
 from __future__ import annotations
@@ -130,8 +132,8 @@ def constructed_queries(n: int, edge_edge: bool, seed: int = 0, angle: float = 1
     corner lies ``angle`` (times its size) off the line of the other two. A tenth touch at
     t = 0 and a tenth at t = 1; offsets cycle through the origin, (1e3, -2e3, 5e2) and
     (-7.5, 3.1, 100); velocity scales through 1e-4, 1 and 100; every fifth query moves rigidly
-    (no relative motion). The slivers are a known limit of the float64 distance (the module
-    docstring: below a thinness of about 1e-6)."""
+    (no relative motion). The slivers test the round-off bound of the distance to a thin
+    triangle's plane (`geometry.vt_round_off`)."""
     if int(n) != n or n < 0:
         raise ValueError(f"constructed_queries: n must be a whole number >= 0, got {n!r}")
     if not (math.isfinite(angle) and angle >= 0.0):

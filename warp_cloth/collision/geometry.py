@@ -20,7 +20,10 @@ against its triangles, its edges against its edges) use these functions and no o
   distance falls to ``delta`` (the minimum separation: the contact thickness in the simulator,
   a round-off bound for exact-contact queries); the returned time is the first such advance, so
   the primitives are at least ``0.1 d`` apart before it. Distances are computed in float64, so
-  round-off cannot hide a contact of coordinates of order one by more than about 1e-15.
+  round-off cannot hide a contact of coordinates of order one by more than about 1e-15, except
+  to the plane of a thin triangle, where it grows as 1 / thinness: the vertex-triangle test
+  advances on the distance less its round-off bound (`vt_round_off`), a lower bound, so a sliver
+  reports its contact early (at most by that bound) rather than never.
   Queries that need more than ``max_iter`` advances (grazing motion at a distance just above
   ``delta``) report a conservative hit with status `CCD_CAPPED` (counted, never dropped).
 
@@ -37,7 +40,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = ["closest_point_triangle", "point_triangle_closest", "segment_segment_closest",
-           "ccd_vertex_triangle", "ccd_edge_edge", "vt_impact", "ee_impact", "CCD_MISS", "CCD_HIT", "CCD_CAPPED"]
+           "ccd_vertex_triangle", "ccd_edge_edge", "vt_round_off", "vt_impact", "ee_impact", "CCD_MISS", "CCD_HIT", "CCD_CAPPED"]
 
 CCD_MISS = wp.constant(0)
 CCD_HIT = wp.constant(1)
@@ -176,6 +179,41 @@ def vt_distance(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d):
 
 
 @wp.func
+def vt_round_off(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d):
+    """A bound on the float64 round-off of `vt_distance` at these points, the rounding of the
+    points themselves (interpolated along their paths) included.
+
+    Measured to the plane of a thin triangle, the distance is ill-conditioned: the plane's
+    normal is the cross product of two nearly parallel edges, and a perturbation ``delta`` of a
+    corner tilts the plane by ``delta / h`` (``h`` the triangle's least height), moving it by
+    ``R delta / h`` at the point (``R`` the point's distance from the triangle). With
+    ``delta`` the rounding of a coordinate of magnitude ``M`` (about ``eps M``) and the cross
+    product's own cancellation, the error is at most about ``8 eps (M + (R / h) (M + L))``
+    (``L`` the longest edge): about ``1e-15`` for a triangle of ordinary shape at coordinates of
+    order one, ``1e-9`` for one 1e-7 thin. A triangle too thin for its plane
+    (`point_triangle_closest`'s degenerate branch) is measured to its edges, which are not
+    ill-conditioned."""
+    ab = b - a
+    ac = c - a
+    bc = c - b
+    l2 = wp.max(wp.dot(ab, ab), wp.max(wp.dot(ac, ac), wp.dot(bc, bc)))
+    scale = wp.max(wp.dot(ab, ab), wp.dot(ac, ac))
+    n = wp.cross(ab, ac)
+    n2 = wp.dot(n, n)
+    m = wp.float64(0.0)
+    for k in range(3):
+        m = wp.max(m, wp.max(wp.max(wp.abs(p[k]), wp.abs(a[k])),
+                             wp.max(wp.abs(b[k]), wp.abs(c[k]))))
+    big = wp.sqrt(l2)
+    eps = wp.float64(8.0 * 2.220446049250313e-16)
+    if n2 > wp.float64(1.0e-24) * scale * scale:
+        r = wp.length(p - a) + big
+        h = wp.sqrt(n2) / big  # the least height: twice the area over the longest edge
+        return eps * (m + (r / h) * (m + big))
+    return eps * (m + big)
+
+
+@wp.func
 def ee_distance(p0: wp.vec3d, p1: wp.vec3d, q0: wp.vec3d, q1: wp.vec3d):
     s, t, cp, cq = segment_segment_closest(p0, p1, q0, q1)
     return wp.length(cp - cq)
@@ -198,14 +236,19 @@ def ccd_vertex_triangle(p0: wp.vec3d, a0: wp.vec3d, b0: wp.vec3d, c0: wp.vec3d,
     t = wp.float64(0.0)
     one = wp.float64(1.0)
     for it in range(max_iter):
-        d = vt_distance(p0 + t * dp, a0 + t * da, b0 + t * db, c0 + t * dc)
+        pt = p0 + t * dp
+        at = a0 + t * da
+        bt = b0 + t * db
+        ct = c0 + t * dc
+        # the distance less its round-off bound (`vt_round_off`): a lower bound of the distance
+        d = vt_distance(pt, at, bt, ct) - vt_round_off(pt, at, bt, ct)
         if d <= delta:
             return CCD_HIT, t
         if lp <= wp.float64(0.0):
             return CCD_MISS, one
         step = wp.float64(0.9) * d / lp
         if t + step >= one:
-            d1 = vt_distance(p1, a1, b1, c1)
+            d1 = vt_distance(p1, a1, b1, c1) - vt_round_off(p1, a1, b1, c1)
             if d1 <= delta:
                 return CCD_HIT, one
             return CCD_MISS, one
