@@ -194,7 +194,7 @@ def test_ccd_no_false_negative_on_constructed_crossings():
     assert (status != geometry.CCD_MISS).all(), np.flatnonzero(status == geometry.CCD_MISS)
     # the vertex-triangle queries of the same kind, the 1e-7 thin slivers among them: every
     # one a hit as well (without the round-off bound of the distance to a thin triangle's
-    # plane, `vt_round_off`, 11 slivers of these 400 were missed)
+    # plane, `vt_round_off`, 8 slivers of these 400 were missed)
     pts, _, degenerate = constructed_queries(400, False, seed=11, angle=1e-7)
     assert degenerate.sum() > 100
     status, _, _ = run_queries(pts, False, delta=1e-10)
