@@ -83,11 +83,11 @@ class Meter:
         out.zero_()
         self.sums.zero_()
         launch(vertex_measure_kernel, m.num_vertices,
-                  [state.x, state.v, m.mass, wp.vec3(*m.gravity), out, self.sums],
-                  device=m.device)
+               [state.x, state.v, m.mass, wp.vec3(*m.gravity), out, self.sums],
+               device=m.device)
         if m.num_stretch_springs:
             launch(strain_measure_kernel, m.num_stretch_springs,
-                      [state.x, m.spring_indices, m.spring_rest_length, out], device=m.device)
+                   [state.x, m.spring_indices, m.spring_rest_length, out], device=m.device)
         h = out.numpy()
         finite = h[0] == 0
         if energy and finite:

@@ -386,9 +386,9 @@ def color_constraints(pairs: np.ndarray, num_vertices: int) -> np.ndarray:
         colors = wp.zeros(len(pairs), dtype=wp.int64, device="cpu")
         overflow = wp.zeros(1, dtype=wp.int32, device="cpu")
         launch(_greedy_color_kernel, 1,
-                  [wp.array(pairs.astype(np.int32), dtype=wp.int32, ndim=2, device="cpu"),
-                   wp.zeros(num_vertices, dtype=wp.int64, device="cpu"), colors, overflow],
-                  device="cpu")
+               [wp.array(pairs.astype(np.int32), dtype=wp.int32, ndim=2, device="cpu"),
+                wp.zeros(num_vertices, dtype=wp.int64, device="cpu"), colors, overflow],
+               device="cpu")
         if not overflow.numpy()[0]:
             return colors.numpy().astype(np.int64)
     return _color_constraints_python(pairs, num_vertices)
@@ -500,7 +500,7 @@ class _JacobiLimit:
         else:
             self._check(state.x)
             launch(limit_loop_kernel, 1, [self._counts, self._excess, self.iterations, 1, self._group],
-                      device=self.device)
+                   device=self.device)
             wp.capture_while(self._cond, self._adaptive_sweep, state=state, dt=dt)
         self._finish(state, dt)
 
@@ -530,7 +530,7 @@ class _JacobiLimit:
                 stage.project_positions(state.x, x_start, dt, state.time)
         self._check(state.x)
         launch(limit_loop_kernel, 1, [self._counts, self._excess, self.iterations, 0, k],
-                  device=self.device)
+               device=self.device)
 
     def _begin(self, state):
         pass
@@ -545,8 +545,8 @@ class _JacobiLimit:
         """One Jacobi iteration: every element's correction, then the blend (and ``v``)."""
         self._launch_elements(state.x)
         launch(limit_apply_kernel, self.model.num_vertices,
-                  [state.x, state.v, self._delta, self._count, self.relaxation, 1.0 / dt],
-                  device=self.device)
+               [state.x, state.v, self._delta, self._count, self.relaxation, 1.0 / dt],
+               device=self.device)
 
     # ---------------------------------------------------------------- reporting
     @property
@@ -690,12 +690,12 @@ class StrainLimit(_JacobiLimit):
     def _finish(self, state, dt):
         if self.gauss_seidel:
             launch(limit_velocity_kernel, self.model.num_vertices,
-                      [state.x, state.v, self._x_before, 1.0 / dt], device=self.device)
+                   [state.x, state.v, self._x_before, 1.0 / dt], device=self.device)
 
     def _group_begin(self, state):
         if self._tether is not None:
             launch(tether_kernel, self.model.num_vertices, [state.x, *self._tether],
-                      device=self.device)
+                   device=self.device)
 
     def _sweep(self, state, dt, grouped=False):
         if not self.gauss_seidel:
@@ -705,21 +705,21 @@ class StrainLimit(_JacobiLimit):
             launch(tether_kernel, m.num_vertices, [state.x, *self._tether], device=self.device)
         for c in range(len(offs) - 1):
             launch(strain_limit_gs_kernel, offs[c + 1] - offs[c],
-                      [state.x, self._edges, self._rest, m.inv_mass, self.sigma_min,
-                       min(self.sigma_max, 3.0e38), offs[c], *self._targets], device=self.device)
+                   [state.x, self._edges, self._rest, m.inv_mass, self.sigma_min,
+                    min(self.sigma_max, 3.0e38), offs[c], *self._targets], device=self.device)
 
     def _check(self, x):
         t = self.tolerance
         launch(strain_check_kernel, self.num_edges,
-                  [x, self._edges, self._rest, self.model.inv_mass, self.sigma_min - t,
-                   min(self.sigma_max + t, 3.0e38), self._bad, self._excess], device=self.device)
+               [x, self._edges, self._rest, self.model.inv_mass, self.sigma_min - t,
+                min(self.sigma_max + t, 3.0e38), self._bad, self._excess], device=self.device)
 
     def _launch_elements(self, x):
         m = self.model
         launch(strain_limit_kernel, self.num_edges,
-                  [x, self._edges, self._rest, m.inv_mass, self.sigma_min,
-                   min(self.sigma_max, 3.0e38), self._delta, self._count],
-                  device=self.device)
+               [x, self._edges, self._rest, m.inv_mass, self.sigma_min,
+                min(self.sigma_max, 3.0e38), self._delta, self._count],
+               device=self.device)
 
     def __repr__(self):
         tol = "None" if self.tolerance is None else f"{self.tolerance:g}"
@@ -770,16 +770,16 @@ class AreaLimit(_JacobiLimit):
     def _check(self, x):
         t = self.tolerance
         launch(area_check_kernel, self.model.num_triangles,
-                  [x, self.model.tri_indices, self._rest_area, self.model.inv_mass,
-                   self.a_min - t, min(self.a_max + t, 3.0e38), self._bad, self._excess],
-                  device=self.device)
+               [x, self.model.tri_indices, self._rest_area, self.model.inv_mass,
+                self.a_min - t, min(self.a_max + t, 3.0e38), self._bad, self._excess],
+               device=self.device)
 
     def _launch_elements(self, x):
         m = self.model
         launch(area_limit_kernel, m.num_triangles,
-                  [x, m.tri_indices, self._rest_area, m.mass, m.inv_mass, self.a_min,
-                   min(self.a_max, 3.0e38), self._delta, self._count],
-                  device=self.device)
+               [x, m.tri_indices, self._rest_area, m.mass, m.inv_mass, self.a_min,
+                min(self.a_max, 3.0e38), self._delta, self._count],
+               device=self.device)
 
     def __repr__(self):
         tol = "None" if self.tolerance is None else f"{self.tolerance:g}"

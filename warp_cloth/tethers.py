@@ -102,7 +102,7 @@ class PinStretch:
         """The ratio for the pins' positions in ``x`` (nothing if the pins do not move)."""
         if self.moving:
             launch(pin_stretch_kernel, 1, [x, self._pins, self._rest, self.scale],
-                      device=self.device)
+                   device=self.device)
 
 
 @wp.func
@@ -314,7 +314,7 @@ def tether_anchors(vertices, triangles, sources, k: int = 2, *, heap: int | None
                 wp.empty(cap, dtype=wp.int32, device=cpu),
                 wp.empty(cap, dtype=wp.int32, device=cpu))
         launch(geodesic_labels_kernel, 1, [*args, label_s, label_d, nlab, *heap, full],
-                  device=cpu)
+               device=cpu)
         if not full.numpy()[0]:
             break
         cap *= 2

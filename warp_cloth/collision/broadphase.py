@@ -155,15 +155,15 @@ class ClothBroadPhase:
         """Boxes of the paths ``x0 -> x1`` inflated by ``pad``, and the BVHs refitted;
         ``vertices``: also the vertices' boxes and their BVH ``vertex_bvh`` (BVH method only)."""
         launch(cloth_bounds_kernel, self.num_tris + self.num_edges,
-                  [x0, x1, self.tris, self.edges, self.num_tris, float(pad), self.lowers,
-                   self.uppers, self.elowers, self.euppers], device=self.device)
+               [x0, x1, self.tris, self.edges, self.num_tris, float(pad), self.lowers,
+                self.uppers, self.elowers, self.euppers], device=self.device)
         if vertices and self.method == "bvh":
             if self.vertex_bvh is None:
                 n = len(x0)
                 self.vlowers = wp.zeros(n, dtype=wp.vec3, device=self.device)
                 self.vuppers = wp.zeros(n, dtype=wp.vec3, device=self.device)
             launch(vertex_bounds_kernel, len(x0), [x0, x1, float(pad), self.vlowers,
-                                                      self.vuppers], device=self.device)
+                                                   self.vuppers], device=self.device)
             if self.vertex_bvh is None:
                 self.vertex_bvh = wp.Bvh(self.vlowers, self.vuppers)
             else:
@@ -172,11 +172,11 @@ class ClothBroadPhase:
             self.rmax.zero_()
             if self.num_tris:
                 launch(box_centres_kernel, self.num_tris,
-                          [self.lowers, self.uppers, self.centres, self.rmax, 0], device=self.device)
+                       [self.lowers, self.uppers, self.centres, self.rmax, 0], device=self.device)
             if self.num_edges:
                 launch(box_centres_kernel, self.num_edges,
-                          [self.elowers, self.euppers, self.ecentres, self.rmax, 1],
-                          device=self.device)
+                       [self.elowers, self.euppers, self.ecentres, self.rmax, 1],
+                       device=self.device)
             cell = self.rest_span + 2.0 * float(pad)
             self.tri_grid.build(self.centres, cell)
             self.edge_grid.build(self.ecentres, cell)

@@ -146,15 +146,15 @@ class SelfIntersectionChecker:
         else:
             self.x.assign(np.asarray(positions, dtype=np.float32))
         launch(tri_box_kernel, self.tris.shape[0], [self.x, self.tris, self.lowers, self.uppers],
-                  device=self.device)
+               device=self.device)
         if self.bvh is None:
             self.bvh = wp.Bvh(self.lowers, self.uppers)
         else:
             self.bvh.refit()
         self.count.zero_()
         launch(self_crossing_kernel, self.edges.shape[0],
-                  [self.bvh.id, self.x, self.tris, self.edges, self.count, self.per_edge],
-                  device=self.device)
+               [self.bvh.id, self.x, self.tris, self.edges, self.count, self.per_edge],
+               device=self.device)
         return int(self.count.numpy()[0])
 
 

@@ -347,25 +347,25 @@ class ObstacleContact:
 
             # static spheres and planes: the whole contact inside the vertex update
             launch(integrate_contact_kernel(self._far_kinds, update), m.num_vertices,
-                      [*head[:7], self._analytic_reach, self.thickness, self.slack,
-                       int(self.ccd)], device=self.device)
+                   [*head[:7], self._analytic_reach, self.thickness, self.slack,
+                    int(self.ccd)], device=self.device)
             return
         if self.analytic:
             from .analytic import integrate_far_kernel
 
             self._a_count.zero_()
             launch(integrate_far_kernel(self._far_kinds, update), m.num_vertices,
-                      [*head, self._analytic_reach, self.thickness, self.slack, int(self.ccd),
-                       self._a_count, self._a_list], device=self.device)
+                   [*head, self._analytic_reach, self.thickness, self.slack, int(self.ccd),
+                    self._a_count, self._a_list], device=self.device)
         else:
             from .mesh_contact import integrate_mesh_far_kernel
 
             self._m_count.zero_()
             launch(integrate_mesh_far_kernel(self._mesh_moving, update), m.num_vertices,
-                      [*head, self._mesh_reach, self.thickness, self.slack, int(self.ccd),
-                       self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
-                       self._m_mask],
-                      device=self.device)
+                   [*head, self._mesh_reach, self.thickness, self.slack, int(self.ccd),
+                    self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
+                    self._m_mask],
+                   device=self.device)
         self._near(state.x, x_start, state.v, dt, 1)
 
     def begin_iterations(self, x, x_start, dt: float, time=None) -> None:
@@ -395,15 +395,15 @@ class ObstacleContact:
             from .analytic import analytic_planes_kernel
 
             launch(analytic_planes_kernel, nt,
-                      [self._analytic_data, self._analytic_reach, self.poses, x, x_start, th, ccd,
-                       self._ai_count, self._ai_list, nt, self._a_planes], device=self.device)
+                   [self._analytic_data, self._analytic_reach, self.poses, x, x_start, th, ccd,
+                    self._ai_count, self._ai_list, nt, self._a_planes], device=self.device)
         if self._mesh_data is not None:
             from .mesh_contact import mesh_planes_kernel
 
             launch(mesh_planes_kernel, nt,
-                      [self._mesh_data, self._mesh_ids, self.poses, len(self.analytic), x,
-                       x_start, th, self.slack, ccd, self._cache, self._m_count, self._m_list,
-                       self._m_mask, nt, self._m_planes], device=self.device)
+                   [self._mesh_data, self._mesh_ids, self.poses, len(self.analytic), x,
+                    x_start, th, self.slack, ccd, self._cache, self._m_count, self._m_list,
+                    self._m_mask, nt, self._m_planes], device=self.device)
         self._lists = (x.ptr, x_start.ptr, dt)
 
     def detect(self, x, x_start, dt: float, time, margin: float, record) -> None:
@@ -438,33 +438,33 @@ class ObstacleContact:
             self._a_count.zero_()
             self._ai_count.zero_()
             launch(analytic_far_kernel(self._far_kinds, self._update), m.num_vertices,
-                      [self._analytic_reach, x, x_start, m.inv_mass, th, sl, ccd, self._a_count,
-                       self._a_list, margin, self._ai_count, self._ai_list], device=self.device)
+                   [self._analytic_reach, x, x_start, m.inv_mass, th, sl, ccd, self._a_count,
+                    self._a_list, margin, self._ai_count, self._ai_list], device=self.device)
             launch(analytic_planes_kernel, nt,
-                      [self._analytic_data, self._analytic_reach, self.poses, x, x_start, th, ccd,
-                       self._ai_count, self._ai_list, nt, self._a_planes], device=self.device)
+                   [self._analytic_data, self._analytic_reach, self.poses, x, x_start, th, ccd,
+                    self._ai_count, self._ai_list, nt, self._a_planes], device=self.device)
             pl = self._a_planes
             launch(planes_to_record_kernel, nt,
-                      [x, pl.point, pl.normal, pl.ref, pl.friction, self.restitution,
-                       len(self.analytic), 0, self._ai_count, self._ai_list, margin, nt, record],
-                      device=self.device)
+                   [x, pl.point, pl.normal, pl.ref, pl.friction, self.restitution,
+                    len(self.analytic), 0, self._ai_count, self._ai_list, margin, nt, record],
+                   device=self.device)
         if self._mesh_data is not None:
             from .mesh_contact import mesh_far_kernel, mesh_planes_kernel
 
             self._m_count.zero_()
             launch(mesh_far_kernel(self._mesh_moving, self._update), m.num_vertices,
-                      [self._mesh_reach, x, x_start, m.inv_mass, th, sl, 0, ccd, margin,
-                       self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
-                       self._m_mask], device=self.device)
+                   [self._mesh_reach, x, x_start, m.inv_mass, th, sl, 0, ccd, margin,
+                    self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
+                    self._m_mask], device=self.device)
             launch(mesh_planes_kernel, nt,
-                      [self._mesh_data, self._mesh_ids, self.poses, len(self.analytic), x,
-                       x_start, th, sl + margin, ccd, self._cache, self._m_count, self._m_list,
-                       self._m_mask, nt, self._m_planes], device=self.device)
+                   [self._mesh_data, self._mesh_ids, self.poses, len(self.analytic), x,
+                    x_start, th, sl + margin, ccd, self._cache, self._m_count, self._m_list,
+                    self._m_mask, nt, self._m_planes], device=self.device)
             pl = self._m_planes
             launch(planes_to_record_kernel, nt,
-                      [x, pl.point, pl.normal, pl.ref, pl.friction, self.restitution,
-                       len(self.meshes), len(self.analytic), self._m_count, self._m_list, margin,
-                       nt, record], device=self.device)
+                   [x, pl.point, pl.normal, pl.ref, pl.friction, self.restitution,
+                    len(self.meshes), len(self.analytic), self._m_count, self._m_list, margin,
+                    nt, record], device=self.device)
 
     def project_positions(self, x, x_start, dt: float, time=None) -> None:
         """Positions only: continuous test and projection (for position-based iterations).
@@ -480,12 +480,12 @@ class ObstacleContact:
             nt = self._near_threads
             if self._analytic_data is not None:
                 launch(project_planes_kernel, nt,
-                          [x, self._a_planes, len(self.analytic), self._ai_count, self._ai_list,
-                           nt], device=self.device)
+                       [x, self._a_planes, len(self.analytic), self._ai_count, self._ai_list,
+                        nt], device=self.device)
             if self._mesh_data is not None:
                 launch(project_planes_kernel, nt,
-                          [x, self._m_planes, len(self.meshes), self._m_count, self._m_list, nt],
-                          device=self.device)
+                       [x, self._m_planes, len(self.meshes), self._m_count, self._m_list, nt],
+                       device=self.device)
             return
         self._poses(self.clock if time is None else time, dt, 0)
         self._far(x, x_start, 0, 0.0)
@@ -497,10 +497,10 @@ class ObstacleContact:
 
             self.still.fill_(1)
             launch(obstacle_poses_kernel, len(self.obstacles),
-                      [self._data, self.key_times, self.key_offsets, self.key_rotations, time,
-                       self.clock, dt, respond, self.poses, self.reaches, self._last_t1,
-                       self.still],
-                      device=self.device)
+                   [self._data, self.key_times, self.key_offsets, self.key_rotations, time,
+                    self.clock, dt, respond, self.poses, self.reaches, self._last_t1,
+                    self.still],
+                   device=self.device)
 
     def _far(self, x, x_start, respond, margin):
         """Pass 1 (every vertex): the far tests; the rest go to the near lists."""
@@ -513,8 +513,8 @@ class ObstacleContact:
             if margin > 0.0:
                 self._ai_count.zero_()
             launch(analytic_far_kernel(self._far_kinds, self._update), m.num_vertices,
-                      [self._analytic_reach, x, x_start, m.inv_mass, th, sl, ccd, self._a_count,
-                       self._a_list, margin, self._ai_count, self._ai_list], device=self.device)
+                   [self._analytic_reach, x, x_start, m.inv_mass, th, sl, ccd, self._a_count,
+                    self._a_list, margin, self._ai_count, self._ai_list], device=self.device)
         if self._mesh_data is not None:
             from .mesh_contact import mesh_far_kernel
 
@@ -522,10 +522,10 @@ class ObstacleContact:
             # not touch would pay a BVH query for its plane (measured: PBD +320 % with one)
             self._m_count.zero_()
             launch(mesh_far_kernel(self._mesh_moving, self._update), m.num_vertices,
-                      [self._mesh_reach, x, x_start, m.inv_mass, th, sl, respond, ccd, 0.0,
-                       self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
-                       self._m_mask],
-                      device=self.device)
+                   [self._mesh_reach, x, x_start, m.inv_mass, th, sl, respond, ccd, 0.0,
+                    self._gap, self._cache.anchor, self._last, self._m_count, self._m_list,
+                    self._m_mask],
+                   device=self.device)
 
     def _near(self, x, x_start, v, dt, respond):
         """Pass 2 (listed vertices): projection, continuous test, outcome."""
@@ -534,22 +534,22 @@ class ObstacleContact:
             from .analytic import analytic_near_kernel
 
             launch(analytic_near_kernel(self._far_kinds, self._update), self._near_threads,
-                      [self._analytic_data, self._analytic_reach, self.poses, 0, x, x_start, v,
-                       dt, th, sl, respond, ccd, self._a_count, self._a_list,
-                       self._near_threads], device=self.device)
+                   [self._analytic_data, self._analytic_reach, self.poses, 0, x, x_start, v,
+                    dt, th, sl, respond, ccd, self._a_count, self._a_list,
+                    self._near_threads], device=self.device)
         if self._mesh_data is not None:
             from .mesh_contact import mesh_general_kernel, mesh_near_kernel
 
             nt = self._near_threads
             self._g_count.zero_()
             launch(mesh_near_kernel, nt,
-                      [self._mesh_data, x, x_start, v, th, sl, respond, self._cache,
-                       self._m_count, self._m_list, self._m_mask, nt, self._g_count,
-                       self._g_list, self._g_mask], device=self.device)
+                   [self._mesh_data, x, x_start, v, th, sl, respond, self._cache,
+                    self._m_count, self._m_list, self._m_mask, nt, self._g_count,
+                    self._g_list, self._g_mask], device=self.device)
             launch(mesh_general_kernel, nt,
-                      [self._mesh_data, self._mesh_ids, self.poses, len(self.analytic), x,
-                       x_start, v, dt, th, sl, respond, ccd, self._cache, self._g_count,
-                       self._g_list, self._g_mask, nt], device=self.device)
+                   [self._mesh_data, self._mesh_ids, self.poses, len(self.analytic), x,
+                    x_start, v, dt, th, sl, respond, ccd, self._cache, self._g_count,
+                    self._g_list, self._g_mask, nt], device=self.device)
 
     # ------------------------------------------------------------------ reports (host side)
     def signed_distances(self, positions, t: float) -> np.ndarray:

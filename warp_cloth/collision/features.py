@@ -504,16 +504,16 @@ class FeatureContact:
         d = self.device
         gap = self.thickness + margin
         launch(feature_world_kernel, self.num_vertices,
-                  [self.local, self.pose_of, self.contact.poses, self.p0, self.p1], device=d)
+               [self.local, self.pose_of, self.contact.poses, self.p0, self.p1], device=d)
         b = self.broad
         b.update(x0, x1, gap)
         launch(vertex_triangle_kernel, self.num_vertices,
-                  [b.tri_bvh.id, self.p0, self.p1, self.source, x0, x1, b.tris, gap,
-                   self.thickness, self.mu_t, record], device=d)
+               [b.tri_bvh.id, self.p0, self.p1, self.source, x0, x1, b.tris, gap,
+                self.thickness, self.mu_t, record], device=d)
         if self.num_edges:
             launch(edge_edge_kernel, self.num_edges,
-                      [b.edge_bvh.id, self.p0, self.p1, self.fedges, self.source, x0, x1,
-                       b.edges, gap, self.thickness, self.mu_t, record], device=d)
+                   [b.edge_bvh.id, self.p0, self.p1, self.fedges, self.source, x0, x1,
+                    b.edges, gap, self.thickness, self.mu_t, record], device=d)
 
     def respond(self, state, dt: float, record, first: int = 0) -> None:
         """Jacobi rounds over the record's entries from ``first`` on: at least `rounds`, then
@@ -529,13 +529,13 @@ class FeatureContact:
     def _round(self, state, dt, record, first):
         d, m = self.device, self.model
         launch(jacobi_project_kernel, self.threads,
-                  [record, first, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
-                   RESOLVE_TOL * self.thickness, self.threads, self.moved], device=d)
+               [record, first, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
+                RESOLVE_TOL * self.thickness, self.threads, self.moved], device=d)
         launch(inelastic_apply_kernel, m.num_vertices,
-                  [state.x, state.v, self.acc, self.cnt, self.moved, 1.0 / dt], device=d)
+               [state.x, state.v, self.acc, self.cnt, self.moved, 1.0 / dt], device=d)
         launch(round_done_kernel, 1,
-                  [self.violated, self._flags, self.rounds, MAX_ROUNDS, self.counters],
-                  device=d)
+               [self.violated, self._flags, self.rounds, MAX_ROUNDS, self.counters],
+               device=d)
 
     @property
     def stats(self) -> dict:

@@ -247,16 +247,16 @@ class ImpactZones:
         if steps is None:
             steps = self._one
         launch(zone_clear_kernel, n, [rec, self.zmass, self.zc0, self.zc1, self.zang,
-                                         self.zinert, self.zpinned, self.zsize], device=d)
+                                      self.zinert, self.zpinned, self.zsize], device=d)
         launch(zone_pinned_kernel, n, [rec, self.member, self.label, m.inv_mass, self.zpinned,
-                                          self.zsize], device=d)
+                                       self.zsize], device=d)
         launch(zone_sums_kernel, n, [self.member, self.label, x0, state.x, m.inv_mass,
-                                        self.zpinned, self.zmass, self.zc0, self.zc1], device=d)
+                                     self.zpinned, self.zmass, self.zc0, self.zc1], device=d)
         launch(zone_moments_kernel, n, [self.member, self.label, x0, state.x, m.inv_mass,
-                                           self.zpinned, self.zmass, self.zc0, self.zc1,
-                                           self.zang, self.zinert], device=d)
+                                        self.zpinned, self.zmass, self.zc0, self.zc1,
+                                        self.zang, self.zinert], device=d)
         launch(zone_move_kernel, n, [rec, self.member, self.label, x0, state.x, state.v,
-                                        m.inv_mass, self.zmass, self.zc0, self.zc1, self.zang,
-                                        self.zinert, self.zpinned, 1.0 / dt, steps, counters,
-                                        slot],
-                  device=d)
+                                     m.inv_mass, self.zmass, self.zc0, self.zc1, self.zang,
+                                     self.zinert, self.zpinned, 1.0 / dt, steps, counters,
+                                     slot],
+               device=d)

@@ -889,6 +889,6 @@ def mesh_signed_distance(obstacle, local_points, device="cpu") -> np.ndarray:
     out = wp.zeros(len(pts), dtype=float, device=device)
     big = float(1e6)
     launch(mesh_distance_kernel, len(pts),
-              [mesh.id, int(obstacle.closed), wp.array(pts, dtype=wp.vec3, device=device), big, out],
-              device=device)
+           [mesh.id, int(obstacle.closed), wp.array(pts, dtype=wp.vec3, device=device), big, out],
+           device=device)
     return out.numpy().astype(np.float64)

@@ -662,32 +662,32 @@ class SelfCollision:
         if b.method == "grid":
             if vt:
                 launch(self_vt_grid_kernel, m.num_vertices,
-                          [b.tri_grid.id, b.lowers, b.uppers, b.rmax, *common, b.tris, gap,
-                           self.thickness, m.inv_mass, done, record, vt_pairs, npairs], device=d)
+                       [b.tri_grid.id, b.lowers, b.uppers, b.rmax, *common, b.tris, gap,
+                        self.thickness, m.inv_mass, done, record, vt_pairs, npairs], device=d)
             if ee:
                 launch(self_ee_grid_kernel, b.num_edges,
-                          [b.edge_grid.id, b.elowers, b.euppers, b.rmax, *common, b.edges, gap,
-                           self.thickness, m.inv_mass, done, record, ee_pairs, npairs], device=d)
+                       [b.edge_grid.id, b.elowers, b.euppers, b.rmax, *common, b.edges, gap,
+                        self.thickness, m.inv_mass, done, record, ee_pairs, npairs], device=d)
         else:
             active = self._no_int
             if self._in_span:  # allowances from the span's start: only the active part queries
                 active = self._active
                 slack = max(0.0, 0.5 * (float(gap) - self.thickness))
                 launch(active_kernel, m.num_vertices, [x0, x1, self._allow, slack, active],
-                          device=d)
+                       device=d)
             if vt:
                 launch(self_vt_bvh_kernel, m.num_vertices,
-                          [b.tri_bvh.id, *common, b.tris, gap, self.thickness, m.inv_mass, done,
-                           active, record, vt_pairs, npairs], device=d)
+                       [b.tri_bvh.id, *common, b.tris, gap, self.thickness, m.inv_mass, done,
+                        active, record, vt_pairs, npairs], device=d)
                 if self._in_span:
                     launch(self_tv_bvh_kernel, b.num_tris,
-                              [b.vertex_bvh.id, b.lowers, b.uppers, *common, b.tris, gap,
-                               self.thickness,
-                               m.inv_mass, done, active, record, vt_pairs, npairs], device=d)
+                           [b.vertex_bvh.id, b.lowers, b.uppers, *common, b.tris, gap,
+                            self.thickness,
+                            m.inv_mass, done, active, record, vt_pairs, npairs], device=d)
             if ee:
                 launch(self_ee_bvh_kernel, b.num_edges,
-                          [b.edge_bvh.id, *common, b.edges, gap, self.thickness, m.inv_mass,
-                           done, active, record, ee_pairs, npairs], device=d)
+                       [b.edge_bvh.id, *common, b.edges, gap, self.thickness, m.inv_mass,
+                        done, active, record, ee_pairs, npairs], device=d)
 
     # ------------------------------------------------------------------ spans
     def plan(self, substeps: int, motion: float) -> None:
@@ -766,8 +766,8 @@ class SelfCollision:
         self._nmoved.zero_()
         self._still.zero_()
         launch(clearance_moved_kernel, self.model.num_vertices,
-                  [x, self._ref, self._reach, CLEAR_FULL_FRACTION, self._moved, self._still,
-                   self._nmoved, self._full], device=d)
+               [x, self._ref, self._reach, CLEAR_FULL_FRACTION, self._moved, self._still,
+                self._nmoved, self._full], device=d)
         wp.capture_if(self._full, on_true=self._clear_full, on_false=self._clear_part, x=x)
 
     def _clear_bounds(self, x, vertices: bool):
@@ -775,7 +775,7 @@ class SelfCollision:
         half = 0.5 * self.clearance
         tl, tu, el, eu, vl, vu = self._clear_boxes
         launch(cloth_bounds_kernel, b.num_tris + b.num_edges,
-                  [x, x, b.tris, b.edges, b.num_tris, half, tl, tu, el, eu], device=d)
+               [x, x, b.tris, b.edges, b.num_tris, half, tl, tu, el, eu], device=d)
         if vertices:
             launch(vertex_bounds_kernel, len(x), [x, x, half, vl, vu], device=d)
         if self._clear_bvh is None:
@@ -794,37 +794,37 @@ class SelfCollision:
         el, eu = self._clear_boxes[2:4]
         if b.num_tris:
             launch(clearance_vt_kernel, m.num_vertices,
-                      [tb.id, x, b.tris, m.inv_mass, half, self.thickness, self._no_int,
-                       self._allow], device=d)
+                   [tb.id, x, b.tris, m.inv_mass, half, self.thickness, self._no_int,
+                    self._allow], device=d)
         if b.num_edges:
             launch(clearance_ee_kernel, b.num_edges,
-                      [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._no_int,
-                       self._allow], device=d)
+                   [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._no_int,
+                    self._allow], device=d)
         launch(clearance_keep_kernel, m.num_vertices,
-                  [x, self._allow, self._ref, self._allow_ref, self._full],
-                  device=d)
+               [x, self._allow, self._ref, self._allow_ref, self._full],
+               device=d)
 
     def _clear_part(self, x):
         # the pairs with a vertex that moved since the last full pass; the others keep that
         # pass's allowance less the farthest a still vertex went
         d, b, m = self.device, self.broad, self.model
         launch(clearance_start_kernel, m.num_vertices, [self._allow_ref, self._still,
-                                                          self._allow], device=d)
+                                                       self._allow], device=d)
         half = self._clear_bounds(x, True)
         tb, eb, vb = self._clear_bvh
         el, eu = self._clear_boxes[2:4]
         if b.num_tris:
             launch(clearance_vt_kernel, m.num_vertices,
-                      [tb.id, x, b.tris, m.inv_mass, half, self.thickness, self._moved,
-                       self._allow], device=d)
+                   [tb.id, x, b.tris, m.inv_mass, half, self.thickness, self._moved,
+                    self._allow], device=d)
             tl, tu = self._clear_boxes[:2]
             launch(clearance_tv_kernel, b.num_tris,
-                      [vb.id, tl, tu, x, b.tris, m.inv_mass, self.thickness, self._moved,
-                       self._allow], device=d)
+                   [vb.id, tl, tu, x, b.tris, m.inv_mass, self.thickness, self._moved,
+                    self._allow], device=d)
         if b.num_edges:
             launch(clearance_ee_kernel, b.num_edges,
-                      [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._moved,
-                       self._allow], device=d)
+                   [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._moved,
+                    self._allow], device=d)
 
     def step(self, state, x_start, dt: float, obstacles=None) -> None:
         """Self-collision after one solver step: `resolve` every step, or once per span
@@ -846,8 +846,8 @@ class SelfCollision:
             self._k = 0
         self.hold(state)
         launch(span_step_kernel, len(start), [state.x, state.v, self.acc, self.cnt, start,
-                                                 self._reach, self._allow, int(last), steps,
-                                                 flag], device=d)
+                                              self._reach, self._allow, int(last), steps,
+                                              flag], device=d)
         wp.capture_if(flag, self._span_resolve, state=state, dt=dt)
 
     def _span_resolve(self, state, dt):
@@ -870,24 +870,24 @@ class SelfCollision:
         if self.allowances:
             self.clear(state.x)
         launch(span_begin_kernel, len(start), [state.x, start, steps, flag],
-                  device=self.device)
+               device=self.device)
 
     def hold(self, state) -> None:
         """One Jacobi projection of the contacts the last `resolve` found (no detection), into
         ``acc`` / ``cnt``: keeps a layer resting on another from sinking into it between the
         responses of a span (`CollisionStage.plan`, whose `span_step_kernel` applies it)."""
         launch(jacobi_project_kernel, self.threads,
-                  [self.record, 0, state.x, self.model.inv_mass, self.acc, self.cnt, self._held,
-                   0.01 * self.thickness, self.threads, self._no_moved], device=self.device)
+               [self.record, 0, state.x, self.model.inv_mass, self.acc, self.cnt, self._held,
+                0.01 * self.thickness, self.threads, self._no_moved], device=self.device)
 
     def _project(self, state, dt):
         m, d = self.model, self.device
         for _ in range(self.iterations):
             launch(jacobi_project_kernel, self.threads,
-                      [self.record, 0, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
-                       0.01 * self.thickness, self.threads, self._no_moved], device=d)
+                   [self.record, 0, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
+                    0.01 * self.thickness, self.threads, self._no_moved], device=d)
             launch(inelastic_apply_kernel, m.num_vertices,
-                      [state.x, state.v, self.acc, self.cnt, self._no_moved, 0.0], device=d)
+                   [state.x, state.v, self.acc, self.cnt, self._no_moved, 0.0], device=d)
 
     def resolve(self, state, x_start, dt: float, steps=None) -> None:
         """Rounds of detection and response on ``x_start -> state.x``, then the impact zones.
@@ -901,7 +901,7 @@ class SelfCollision:
         round. Run eagerly, Warp reads the flags on the host."""
         m, d = self.model, self.device
         launch(step_begin_kernel, max(len(STAT_KEYS), 1),
-                  [self.done, self.violated, self._flags, self.counters], device=d)
+               [self.done, self.violated, self._flags, self.counters], device=d)
         steps = self._one if steps is None else steps
         wp.capture_while(self._flags[1:2], self._round, state=state, x_start=x_start, dt=dt)
         wp.capture_if(self._flags[2:3], self._fallback, state=state, x_start=x_start, dt=dt,
@@ -923,7 +923,7 @@ class SelfCollision:
             # (the last) leaves nothing for this to move: the rounds end clear of both
             self._obstacles()
         launch(round_end_kernel, 1, [self.record, self.violated, self.done, self.counters,
-                                        self._flags, self.rounds], device=self.device)
+                                     self._flags, self.rounds], device=self.device)
 
     def _fallback(self, state, x_start, dt, steps):
         # what is left after the last round: paths that still come within 5 % of the thickness
@@ -942,8 +942,8 @@ class SelfCollision:
         self.record.count.zero_()
         self.detect(x_start, state.x, gap, self.record, self.done)
         launch(revert_kernel, self.threads,
-                  [self.record, state.x, state.v, x_start, m.inv_mass, self.counters, I_FALLBACK,
-                   self.threads], device=d)
+               [self.record, state.x, state.v, x_start, m.inv_mass, self.counters, I_FALLBACK,
+                self.threads], device=d)
 
     def frame_end(self) -> list:
         """Since the last call: steps that returned the whole cloth to its start, and dropped

@@ -257,29 +257,29 @@ class DihedralBending(_QuadTerm):
     def eval(self, x, v=None, f=None, time=None, **_):
         if self.num_quads and self.k > 0:
             launch(dihedral_forces_kernel, self.num_quads,
-                      [x, self.quads, self.sin_half_rest, self.k, f], device=self.device)
+                   [x, self.quads, self.sin_half_rest, self.k, f], device=self.device)
 
     def eval_with_hessian(self, x, f):
         """Add the forces at ``x`` to ``f`` and refresh the Hessian approximation at ``x``."""
         if self.num_quads:
             launch(dihedral_forces_hessian_kernel, self.num_quads,
-                      [x, self.quads, self.sin_half_rest, self.k, f, self.g], device=self.device)
+                   [x, self.quads, self.sin_half_rest, self.k, f, self.g], device=self.device)
 
     def energy(self, x, out):
         if self.num_quads and self.k > 0:
             launch(dihedral_energy_kernel, self.num_quads,
-                      [x, self.quads, self.rest_theta, self.k, out], device=self.device)
+                   [x, self.quads, self.rest_theta, self.k, out], device=self.device)
 
     def matvec_add(self, x, out):
         """``out += H x`` with the Hessian approximation of the last `eval_with_hessian`."""
         if self.num_quads:
             launch(rank1_matvec_kernel, self.num_quads, [x, self.quads, self.g, out],
-                      device=self.device)
+                   device=self.device)
 
     def add_diagonal(self, diag):
         if self.num_quads:
             launch(rank1_diagonal_kernel, self.num_quads, [self.quads, self.g, diag],
-                      device=self.device)
+                   device=self.device)
 
 
 # ------------------------------------------------------------------------------ quadratic
@@ -385,7 +385,7 @@ class QuadraticBending(_QuadTerm):
     def eval(self, x, v=None, f=None, time=None, **_):
         if self.num_quads and self.k > 0:
             launch(quadratic_apply_kernel, self.num_quads, [x, self.quads, self.w, -1.0, f],
-                      device=self.device)
+                   device=self.device)
 
     def eval_with_hessian(self, x, f):
         self.eval(x, None, f)
@@ -393,25 +393,25 @@ class QuadraticBending(_QuadTerm):
     def energy(self, x, out):
         if self.num_quads and self.k > 0:
             launch(quadratic_energy_kernel, self.num_quads,
-                      [x, self._no_configs, self.quads, self.w, out], device=self.device)
+                   [x, self._no_configs, self.quads, self.w, out], device=self.device)
 
     def energy_configs(self, x, x_try, out):
         """`energy` at ``x`` into ``out[0]`` and at each row ``j`` of ``x_try`` (a 2d array of
         configurations) into ``out[j + 1]``: one launch (a line search's candidates)."""
         if self.num_quads and self.k > 0:
             launch(quadratic_energy_kernel, self.num_quads,
-                      [x, x_try, self.quads, self.w, out], device=self.device)
+                   [x, x_try, self.quads, self.w, out], device=self.device)
 
     def matvec_add(self, x, out):
         """``out += Q x`` (exact)."""
         if self.num_quads and self.k > 0:
             launch(quadratic_apply_kernel, self.num_quads, [x, self.quads, self.w, 1.0, out],
-                      device=self.device)
+                   device=self.device)
 
     def add_diagonal(self, diag):
         if self.num_quads and self.k > 0:
             launch(quadratic_diagonal_kernel, self.num_quads, [self.quads, self.w, diag],
-                      device=self.device)
+                   device=self.device)
 
     def scalar_entries(self):
         """``Q``'s scalar factor (``Q = S (x) I_3``) as coordinates: ``(rows, cols, values)``,

@@ -670,7 +670,7 @@ class ContactCoupling:
         self.stage.detect(x_start, x_pred, dt, time)
         if self.sag_cap > 0.0:
             launch(sag_apply_kernel, self.threads,
-                      [self.record, self.sag, self.sources, self.threads], device=self.device)
+                   [self.record, self.sag, self.sources, self.threads], device=self.device)
         self.active.zero_()
         wp.copy(self.x_pred, x_pred)
         if self.self_record is not None:
@@ -681,7 +681,7 @@ class ContactCoupling:
                 sc.detect(x_start, x_pred, sc.thickness + self.stage.solve_margin,
                           self.self_record)
                 launch(add_overflow_kernel, 1, [self.self_record, self.self_dropped],
-                          device=self.device)
+                       device=self.device)
             self.self_on.zero_()
 
     # ------------------------------------------------------------------ Newton
@@ -692,16 +692,16 @@ class ContactCoupling:
         self.nblock.zero_()
         self.active.zero_()
         launch(newton_contact_kernel, self.threads,
-                  [self.record, x, self.model.inv_mass, *self._args(dt), b, diag, self.vblock,
-                   self.nblock, self.active,
-                   self.pairs_on if self.pairs_on is not None else self._no_flags],
-                  device=self.device)
+               [self.record, x, self.model.inv_mass, *self._args(dt), b, diag, self.vblock,
+                self.nblock, self.active,
+                self.pairs_on if self.pairs_on is not None else self._no_flags],
+               device=self.device)
         self._dt = dt
         if self.self_record is not None:
             launch(newton_contact_kernel, self.self_threads,
-                      [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
-                       self.self_threads, b, diag, self.vblock, self.nblock, self.active,
-                       self.self_on], device=self.device)
+                   [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
+                    self.self_threads, b, diag, self.vblock, self.nblock, self.active,
+                    self.self_on], device=self.device)
 
     def _record_regrown(self, record) -> None:
         """The arrays sized by the stage's obstacle record: at construction, and when
@@ -753,14 +753,14 @@ class ContactCoupling:
         `pd_contact_kernel`, and skips them here), and the self-contacts."""
         if self.pairs_on is not None and self.pairs_in_operator:
             launch(pair_matvec_kernel, self.threads,
-                      [self.record, self.pairs_on, self.model.inv_mass,
-                       self.kappa / (self._dt * self._dt), self.threads, x, out],
-                      device=self.device)
+                   [self.record, self.pairs_on, self.model.inv_mass,
+                    self.kappa / (self._dt * self._dt), self.threads, x, out],
+                   device=self.device)
         if self.self_record is not None:
             launch(pair_matvec_kernel, self.self_threads,
-                      [self.self_record, self.self_on, self.model.inv_mass,
-                       self.kappa / (self._dt * self._dt), self.self_threads, x, out],
-                      device=self.device)
+                   [self.self_record, self.self_on, self.model.inv_mass,
+                    self.kappa / (self._dt * self._dt), self.self_threads, x, out],
+                   device=self.device)
 
     def add_diagonal(self, diag) -> None:  # its diagonal blocks are added by `add_newton`
         pass
@@ -774,11 +774,11 @@ class ContactCoupling:
         of the last step drive past static friction (`slide`, read by `pd_local`). ``project``
         (Newton): a vertex arriving at its surface this step starts on its constraint's plane."""
         launch(friction_guess_kernel, self.threads,
-                  [self.record, x, self.model.inv_mass, self.lam, self.sources, dt * dt,
-                   f_drive, self.threads, disp, self.f_other if classify else self._no_vec,
-                   wp.vec3(*self.model.gravity), self.slide if classify else self._no_flags,
-                   int(project)],
-                  device=self.device)
+               [self.record, x, self.model.inv_mass, self.lam, self.sources, dt * dt,
+                f_drive, self.threads, disp, self.f_other if classify else self._no_vec,
+                wp.vec3(*self.model.gravity), self.slide if classify else self._no_flags,
+                int(project)],
+               device=self.device)
         self._classified = bool(classify)
 
     def energy(self, x, out, dt: float, slot: int = 0) -> None:
@@ -789,12 +789,12 @@ class ContactCoupling:
         """`energy` at ``x`` added to ``out[slot]`` and at each row ``j`` of ``x_try`` to
         ``out[slot + j + 1]``: one launch a record (a line search's candidates)."""
         launch(contact_energy_kernel, self.threads,
-                  [self.record, x, x_try, self.model.inv_mass, *self._args(dt), out, slot],
-                  device=self.device)
+               [self.record, x, x_try, self.model.inv_mass, *self._args(dt), out, slot],
+               device=self.device)
         if self.self_record is not None:
             launch(contact_energy_kernel, self.self_threads,
-                      [self.self_record, x, x_try, self.model.inv_mass, *self._args(dt)[:-1],
-                       self.self_threads, out, slot], device=self.device)
+                   [self.self_record, x, x_try, self.model.inv_mass, *self._args(dt)[:-1],
+                    self.self_threads, out, slot], device=self.device)
 
     def end_step(self, x, v, dt: float, time=None) -> None:
         """After the solve: the normal forces for the next step's friction (bounded by the load
@@ -803,44 +803,44 @@ class ContactCoupling:
         m = self.model
         f = self.f_other
         launch(weight_kernel, m.num_vertices, [m.mass, wp.vec3(*m.gravity), f],
-                  device=self.device)
+               device=self.device)
         for term in m.force_terms:
             term.eval(x, v, f, time)
         self.lam.zero_()
         launch(normal_force_kernel, self.threads,
-                  [self.record, x, m.inv_mass, self.kappa / (dt * dt), self.threads,
-                   self.sources, f, self.lam], device=self.device)
+               [self.record, x, m.inv_mass, self.kappa / (dt * dt), self.threads,
+                self.sources, f, self.lam], device=self.device)
         if self.sag_cap > 0.0:
             self.sag.zero_()
             launch(sag_update_kernel, self.threads,
-                      [self.record, x, self.model.inv_mass, self.sag_cap, self.sources,
-                       self.threads, self.sag], device=self.device)
+                   [self.record, x, self.model.inv_mass, self.sag_cap, self.sources,
+                    self.threads, self.sag], device=self.device)
         launch(contact_velocity_kernel, self.threads,
-                  [self.record, x, self.model.inv_mass, 1.0 / dt,
-                   self.stage.contact.slack if self.stage.contact is not None else 0.0,
-                   self.x_pred, self.threads, v],
-                  device=self.device)
+               [self.record, x, self.model.inv_mass, 1.0 / dt,
+                self.stage.contact.slack if self.stage.contact is not None else 0.0,
+                self.x_pred, self.threads, v],
+               device=self.device)
 
     # ------------------------------------------------------------------ projective dynamics
     def pd_local(self, x, f, objective, slot: int, dt: float) -> None:
         """Forces into ``f``, this iteration's blocks into `vblock`, ``E_c`` into the objective."""
         self.vblock.zero_()
         launch(pd_contact_kernel, self.threads,
-                  [self.record, x, self.model.inv_mass, *self._args(dt), f, self.vblock,
-                   objective, slot, self._no_flags,
-                   self.slide if self._classified else self._no_flags,
-                   1.0 / self.kappa], device=self.device)
+               [self.record, x, self.model.inv_mass, *self._args(dt), f, self.vblock,
+                objective, slot, self._no_flags,
+                self.slide if self._classified else self._no_flags,
+                1.0 / self.kappa], device=self.device)
         if self.self_record is not None:
             self._dt = dt
             launch(pd_contact_kernel, self.self_threads,
-                      [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
-                       self.self_threads, f, self.vblock, objective, slot, self.self_on,
-                       self._no_flags, 1.0], device=self.device)
+                   [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
+                    self.self_threads, f, self.vblock, objective, slot, self.self_on,
+                    self._no_flags, 1.0], device=self.device)
 
     def invert_diagonal(self, blocks, free, dinv) -> None:
         """``dinv = (blocks + vblock)^-1`` (the global matrix's diagonal with contact)."""
         launch(block_inverse_kernel, self.model.num_vertices, [blocks, self.vblock, free, dinv],
-                  device=self.device)
+               device=self.device)
 
     def host_factors(self, free_index):
         """`vblock` as low-rank factors for a direct solve (host): ``(rows, U)`` with ``rows``

@@ -845,13 +845,13 @@ class ImplicitEuler(Solver):
         m, d, A = self.model, self.device, self.A
         n = m.num_vertices
         launch(newton_init_kernel, n,
-                  [x, self.x_hat, self.disp, 1 if x is self._iterate else 0, m.mass, self.f_ext,
-                   self._scale, self.b, A.diag, self.dx],
-                  device=d)
+               [x, self.x_hat, self.disp, 1 if x is self._iterate else 0, m.mass, self.f_ext,
+                self._scale, self.b, A.diag, self.dx],
+               device=d)
         if m.num_springs:
             launch(spring_newton_kernel, m.num_springs,
-                      [x, m.spring_indices, m.spring_rest_length, m.spring_k,
-                       0 if self.exact_hessian else 1, self.b, A.slots, A.coef], device=d)
+                   [x, m.spring_indices, m.spring_rest_length, m.spring_k,
+                    0 if self.exact_hessian else 1, self.b, A.slots, A.coef], device=d)
         for t in self.implicit_terms:
             t.eval_with_hessian(x, self.b)
         vb = (A.diag_inv, 0)  # (any mat33 array, flag): no contact term
@@ -862,11 +862,11 @@ class ImplicitEuler(Solver):
             for t in self.implicit_terms:
                 t.add_diagonal(A.diag)
             launch(finish_system_kernel, n,
-                      [A.diag, A.offsets, A.coef, self.b, m.inv_mass, A.free, self._dt2, A.diag_inv,
-                       self.residuals, slot, *vb], device=d)
+                   [A.diag, A.offsets, A.coef, self.b, m.inv_mass, A.free, self._dt2, A.diag_inv,
+                    self.residuals, slot, *vb], device=d)
         else:
             launch(residual_only_kernel, n,
-                      [self.b, m.inv_mass, self._dt2, self.residuals, slot, *vb], device=d)
+                   [self.b, m.inv_mass, self._dt2, self.residuals, slot, *vb], device=d)
 
     def objective(self, x) -> float:
         """F(x) for the current step (after `step` began it): host read, for tests and study."""
@@ -876,10 +876,10 @@ class ImplicitEuler(Solver):
             self._obj32 = wp.zeros(1, dtype=wp.float32, device=d)
         self._obj.zero_()
         launch(objective_kernel, m.num_vertices,
-                  [x, self.x_hat, m.mass, m.inv_mass, self.f_ext, self._scale, self._obj], device=d)
+               [x, self.x_hat, m.mass, m.inv_mass, self.f_ext, self._scale, self._obj], device=d)
         if m.num_springs:
             launch(spring_energy64_kernel, m.num_springs,
-                      [x, m.spring_indices, m.spring_rest_length, m.spring_k, self._obj], device=d)
+                   [x, m.spring_indices, m.spring_rest_length, m.spring_k, self._obj], device=d)
         for t in self.implicit_terms:
             self._obj32.zero_()
             t.energy(x, self._obj32)
@@ -919,9 +919,9 @@ class ImplicitEuler(Solver):
         for t in self.explicit_terms:
             t.eval(state.x, state.v, self.f_ext, state.time)
         launch(begin_step_kernel, n,
-                  [state.x, state.v, m.mass, m.inv_mass, wp.vec3(*m.gravity), dt,
-                   1 if self.initial_guess == "inertial" else 0, self.f_ext, self.x_prev,
-                   self.x_hat, self.disp], device=d)
+               [state.x, state.v, m.mass, m.inv_mass, wp.vec3(*m.gravity), dt,
+                1 if self.initial_guess == "inertial" else 0, self.f_ext, self.x_prev,
+                self.x_hat, self.disp], device=d)
         coupling = self._contact()
         if coupling is not None:  # the step's contacts, from the predicted path
             pred = state.x if self.initial_guess == "inertial" else self.x_hat
@@ -1009,8 +1009,8 @@ class ImplicitEuler(Solver):
                             switched = True
                 step = self._ls_step
             launch(newton_update_kernel, n,
-                      [x, self.dx, step, self.A.free, self.dx_max, k, self.disp],
-                      device=d)
+                   [x, self.dx, step, self.A.free, self.dx_max, k, self.disp],
+                   device=d)
             done = k + 1
             if check or trace is not None:
                 moved = float(self.dx_max.numpy()[k])
@@ -1052,8 +1052,8 @@ class ImplicitEuler(Solver):
                 self._assemble(x, done, hessian=False)
                 lazy = done
         launch(end_step_kernel, n,
-                  [x, self.x_prev, m.inv_mass, 1.0 / dt, math.exp(-m.damping * dt), state.v,
-                   self.f_ext, self.disp], device=d)
+               [x, self.x_prev, m.inv_mass, 1.0 / dt, math.exp(-m.damping * dt), state.v,
+                self.f_ext, self.disp], device=d)
         if coupling is not None:
             coupling.end_step(x, state.v, dt, state.time)
         self._stats = {"newton_iterations": done, "inner_iterations": inner,
@@ -1095,14 +1095,14 @@ class ImplicitEuler(Solver):
         self._ls_energies(x, steps)
         launch(guess_select_kernel, 1, [self._ls_energy, steps, self._ls_step], device=d)
         launch(newton_update_kernel, n,
-                  [x, self.dx, self._ls_step, self.A.free, self.dx_max, -1, self.disp], device=d)
+               [x, self.dx, self._ls_step, self.A.free, self.dx_max, -1, self.disp], device=d)
 
     def _descend(self, x, k: int) -> bool:
         """After the inner solve's direction failed the line search: the preconditioned
         gradient direction ``D^-1 b`` into ``dx``, searched the same way (full lengths, then
         `LS_RETRY` times shorter). True if a step was found (``_ls_step`` holds it)."""
         launch(gradient_direction_kernel, self.model.num_vertices,
-                  [self.b, self.A.diag_inv, self.dx], device=self.device)
+               [self.b, self.A.diag_inv, self.dx], device=self.device)
         for scale in (1.0, LS_RETRY):
             self._line_search(x, k, scale, 1)
             if float(self._ls_taken.numpy()[k]) > 0.0:
@@ -1122,7 +1122,7 @@ class ImplicitEuler(Solver):
         s = 1.0
         for target in (0.5, 0.25, 0.125, 0.0625, 0.03125, 0.015625, 0.0):
             launch(shorten_step_kernel, n,
-                      [x, self.x_prev, v, self.disp, self.A.free, dt, target / s], device=d)
+                   [x, self.x_prev, v, self.disp, self.A.free, dt, target / s], device=d)
             s = target
             if s == 0.0 or self._energy_gain(x, v, dt) <= self._guard_eps:
                 break
@@ -1134,8 +1134,8 @@ class ImplicitEuler(Solver):
     def _restart(self, x, dt: float) -> None:
         m = self.model
         launch(restart_kernel, m.num_vertices,
-                  [x, self.x_prev, self.x_hat, m.inv_mass, self.f_ext, dt,
-                   1 if self.initial_guess == "inertial" else 0, self.disp], device=self.device)
+               [x, self.x_prev, self.x_hat, m.inv_mass, self.f_ext, dt,
+                1 if self.initial_guess == "inertial" else 0, self.disp], device=self.device)
 
     def _guard_applies(self) -> bool:
         """The energy guard compares the step's end with its start, which only means something
@@ -1158,13 +1158,13 @@ class ImplicitEuler(Solver):
         m, d, e = self.model, self.device, self._energy
         e.zero_()
         launch(step_energy_kernel, m.num_vertices,
-                  [x, self.x_prev, v, self.disp, m.mass, m.inv_mass, self.f_ext,
-                   1.0 / dt, math.exp(-m.damping * dt), e], device=d)
+               [x, self.x_prev, v, self.disp, m.mass, m.inv_mass, self.f_ext,
+                1.0 / dt, math.exp(-m.damping * dt), e], device=d)
         for j, xc in enumerate((self.x_prev, x)):
             if m.num_springs:
                 launch(spring_energy64_kernel, m.num_springs,
-                          [xc, m.spring_indices, m.spring_rest_length, m.spring_k, e[j:j + 1]],
-                          device=d)
+                       [xc, m.spring_indices, m.spring_rest_length, m.spring_k, e[j:j + 1]],
+                       device=d)
             for t in self.implicit_terms:
                 self._energy32.zero_()
                 t.energy(xc, self._energy32)
@@ -1225,9 +1225,9 @@ class ImplicitEuler(Solver):
         for t in self.explicit_terms:
             t.eval(state.x, state.v, self.f_ext, state.time)
         launch(begin_step_kernel, m.num_vertices,
-                  [state.x, state.v, m.mass, m.inv_mass, wp.vec3(*m.gravity), dt,
-                   1 if self.initial_guess == "inertial" else 0, self.f_ext, self.x_prev,
-                   self.x_hat, self.disp], device=self.device)
+               [state.x, state.v, m.mass, m.inv_mass, wp.vec3(*m.gravity), dt,
+                1 if self.initial_guess == "inertial" else 0, self.f_ext, self.x_prev,
+                self.x_hat, self.disp], device=self.device)
         self.residuals.zero_()
         self._assemble(state.x, 0)
         return self.A, self.b
@@ -1239,8 +1239,8 @@ class ImplicitEuler(Solver):
         steps = wp.vec4(*(scale * a for a in LS_STEPS))
         self._ls_energies(x, steps)
         launch(ls_select_kernel, 1, [self._ls_energy, steps, LS_ARMIJO, self._ls_step, k,
-                                        self._ls_taken, int(reject)],
-                  device=self.device)
+                                     self._ls_taken, int(reject)],
+               device=self.device)
 
     def _ls_energies(self, x, steps) -> None:
         """F at ``x`` and at ``x + a_j dx`` (``a_j`` the components of ``steps``) into
@@ -1249,12 +1249,12 @@ class ImplicitEuler(Solver):
         E = self._ls_energy
         E.zero_()
         launch(ls_vertex_kernel, n,
-                  [x, self.dx, self.disp, self.b, m.mass, self.A.free, self.f_ext, self._scale,
-                   steps, self._ls_try, E], device=d)
+               [x, self.dx, self.disp, self.b, m.mass, self.A.free, self.f_ext, self._scale,
+                steps, self._ls_try, E], device=d)
         if m.num_springs:
             launch(ls_spring_kernel, m.num_springs,
-                      [x, self._ls_try, m.spring_indices, m.spring_rest_length, m.spring_k, E],
-                      device=d)
+                   [x, self._ls_try, m.spring_indices, m.spring_rest_length, m.spring_k, E],
+                   device=d)
         configs = [x] + [self._ls_try[j] for j in range(len(LS_STEPS))]
         if self.implicit_terms:
             self._ls_energy32.zero_()

@@ -243,8 +243,8 @@ class JacobiSolver(_Base):
             A.matvec(x, self.ax)
             om = 1.0 if fallback else omegas[k]
             launch(_jacobi_update_kernel, A.n,
-                      [x, self.last, b, self.ax, A.diag_inv, A.free, self.alpha, om, sums, k],
-                      device=d)
+                   [x, self.last, b, self.ax, A.diag_inv, A.free, self.alpha, om, sums, k],
+                   device=d)
             k += 1
             if check is not None and (k % check == 0 or k == iters):
                 # sums[k-1] holds ||r||^2 of the iterate BEFORE update k
@@ -334,7 +334,7 @@ class CGSolver(_Base):
         rz.zero_(), pap.zero_(), rr.zero_(), self.bnorm.zero_()
         A.matvec(x, self.ax)
         launch(_cg_start_kernel, n,
-                  [b, self.ax, A.free, A.diag_inv, self.r, self.z, rz, self.bnorm], device=d)
+               [b, self.ax, A.free, A.diag_inv, self.r, self.z, rz, self.bnorm], device=d)
         fused = getattr(A, "cg_direction", None)
         bn = None
         if check is not None:
@@ -344,10 +344,10 @@ class CGSolver(_Base):
             if fused is None or not fused(self.z, self.p, self.ap, rz, pap, k):
                 A.matvec(self.z, self.ax)
                 launch(_cg_direction_kernel, n,
-                          [self.z, self.ax, A.free, self.p, self.ap, rz, pap, k], device=d)
+                       [self.z, self.ax, A.free, self.p, self.ap, rz, pap, k], device=d)
             launch(_cg_update_kernel, n,
-                      [x, self.r, self.z, self.p, self.ap, A.diag_inv, A.free, rz, pap, rr, k],
-                      device=d)
+                   [x, self.r, self.z, self.p, self.ap, A.diag_inv, A.free, rz, pap, rr, k],
+                   device=d)
             if check is not None and ((k + 1) % check == 0 or k + 1 == iters):
                 res = math.sqrt(float(rr.numpy()[k])) / bn
                 if tol is not None and res < tol:
@@ -599,14 +599,14 @@ class SpringSystemOperator:
         m = self.model
         if self.num_springs:
             launch(_fill_laplacian_kernel, self.num_springs, [m.spring_k, self.slots, self.coef],
-                      device=self.device)
+                   device=self.device)
 
     def spring_blocks(self) -> np.ndarray:
         """The spring blocks ``H_e`` as a ``(S, 3, 3)`` NumPy array (host; tests, benchmarks)."""
         out = wp.zeros(max(self.num_springs, 1), dtype=wp.mat33, device=self.device)
         if self.num_springs:
             launch(_blocks_kernel, self.num_springs, [self.slots, self.coef, out],
-                      device=self.device)
+                   device=self.device)
         return out.numpy()[: self.num_springs]
 
     def update(self, mass_scale: float | None = None):
@@ -617,17 +617,17 @@ class SpringSystemOperator:
         for t in self.folded + self.extra:
             t.add_diagonal(self.diag)
         launch(_diag_finish_kernel, self.n,
-                  [self.offsets, self.coef, self.free, self.diag, self.diag_inv], device=d)
+               [self.offsets, self.coef, self.free, self.diag, self.diag_inv], device=d)
 
     def matvec(self, x, out):
         m, d = self.model, self.device
         if self.vertex_blocks is not None:
             launch(_spring_matvec_vb_kernel, self.n,
-                      [x, m.mass, self.mass_scale, *self._rows(), self.vertex_blocks, out],
-                      device=d)
+                   [x, m.mass, self.mass_scale, *self._rows(), self.vertex_blocks, out],
+                   device=d)
         else:
             launch(_spring_matvec_kernel, self.n,
-                      [x, m.mass, self.mass_scale, *self._rows(), out], device=d)
+                   [x, m.mass, self.mass_scale, *self._rows(), out], device=d)
         for t in self.extra:
             t.matvec_add(x, out)
 
@@ -638,12 +638,12 @@ class SpringSystemOperator:
             return False
         if self.vertex_blocks is not None:
             launch(_spring_cg_direction_vb_kernel, self.n,
-                      [z, self.model.mass, self.mass_scale, *self._rows(), self.vertex_blocks,
-                       self.free, p, ap, rz, pap, k], device=self.device)
+                   [z, self.model.mass, self.mass_scale, *self._rows(), self.vertex_blocks,
+                    self.free, p, ap, rz, pap, k], device=self.device)
             return True
         launch(_spring_cg_direction_kernel, self.n,
-                  [z, self.model.mass, self.mass_scale, *self._rows(), self.free, p, ap, rz,
-                   pap, k], device=self.device)
+               [z, self.model.mass, self.mass_scale, *self._rows(), self.free, p, ap, rz,
+                pap, k], device=self.device)
         return True
 
 
@@ -715,7 +715,7 @@ def estimate_spectral_radius(A, alpha: float = 0.66, iterations: int = 60, seed:
     for k in range(iterations):
         A.matvec(x, ax)
         launch(_jacobi_update_kernel, n, [x, last, b, ax, A.diag_inv, A.free, float(alpha), 1.0,
-                                             sums, k], device=d)
+                                          sums, k], device=d)
     r = np.sqrt(sums.numpy())
     r = r[-tail:]
     if r[0] <= 0:

@@ -486,22 +486,22 @@ class PositionBased(Solver):
                 offs = self.color_offsets
                 for c in range(len(offs) - 1):
                     launch(gs_distance_kernel, int(offs[c + 1] - offs[c]),
-                              [x, self._cons, self._rest, self._compliance, self._lambda,
-                               m.inv_mass, inv_dt2, self.use_lambda, int(offs[c])], device=d)
+                           [x, self._cons, self._rest, self._compliance, self._lambda,
+                            m.inv_mass, inv_dt2, self.use_lambda, int(offs[c])], device=d)
             else:
                 last = (finish_velocity and not projectors and not self.tethers
                         and it == iterations - 1)
                 launch(jacobi_distance_kernel, self.num_constraints,
-                          [x, self._cons, self._rest, self._compliance, self._lambda, m.inv_mass,
-                           self._escale, inv_dt2, self.use_lambda, self._delta], device=d)
+                       [x, self._cons, self._rest, self._compliance, self._lambda, m.inv_mass,
+                        self._escale, inv_dt2, self.use_lambda, self._delta], device=d)
                 launch(jacobi_blend_kernel, m.num_vertices,
-                          [x, v, self._xp, self._delta, self._blend_count, m.inv_mass,
-                           self._blend_alpha, 1.0 / dt, int(last)], device=d)
+                       [x, v, self._xp, self._delta, self._blend_count, m.inv_mass,
+                        self._blend_alpha, 1.0 / dt, int(last)], device=d)
                 fused = fused or last
             if self.tethers:
                 launch(tether_kernel, m.num_vertices,
-                          [x, self._tether_anchor, self._tether_rest, self._pin_stretch.scale],
-                          device=d)
+                       [x, self._tether_anchor, self._tether_rest, self._pin_stretch.scale],
+                       device=d)
             for c in projectors:
                 c.project_positions(x, self._x_start, dt)
         return fused
@@ -523,14 +523,14 @@ class PositionBased(Solver):
         for term in self._forces:
             term.eval(state.x, state.v, self._f, state.time)
         launch(predict_kernel, m.num_vertices,
-                  [state.x, state.v, self._xp, self._f, m.inv_mass, wp.vec3(*m.gravity),
-                   math.exp(-m.damping * dt), dt], device=d)
+               [state.x, state.v, self._xp, self._f, m.inv_mass, wp.vec3(*m.gravity),
+                math.exp(-m.damping * dt), dt], device=d)
         fused = False
         if self.num_constraints or self.tethers:
             fused = self._iterate(state.x, state.v, dt, self.iterations, True)
         if not fused:
             launch(velocity_kernel, m.num_vertices,
-                      [state.x, state.v, self._xp, m.inv_mass, 1.0 / dt], device=d)
+                   [state.x, state.v, self._xp, m.inv_mass, 1.0 / dt], device=d)
 
     def describe(self) -> str:
         kind = "gauss-seidel" if self.gauss_seidel else "jacobi"

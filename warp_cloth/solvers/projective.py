@@ -406,17 +406,17 @@ class PDSystemOperator:
         for t in self.extra:
             t.add_diagonal(self.blocks)
         launch(pd_diag_invert_kernel, self.n, [self.blocks, self.free, self.diag_inv],
-                  device=self.device)
+               device=self.device)
 
     def matvec(self, x, out):
         if self.vertex_blocks is not None:
             launch(pd_matvec_vb_kernel, self.n,
-                      [x, self.diag, self.offsets, self.neighbors, self.weights,
-                       self.vertex_blocks, out], device=self.device)
+                   [x, self.diag, self.offsets, self.neighbors, self.weights,
+                    self.vertex_blocks, out], device=self.device)
         else:
             launch(pd_matvec_kernel, self.n,
-                      [x, self.diag, self.offsets, self.neighbors, self.weights, out],
-                      device=self.device)
+                   [x, self.diag, self.offsets, self.neighbors, self.weights, out],
+                   device=self.device)
         for t in self.extra:
             t.matvec_add(x, out)
 
@@ -427,8 +427,8 @@ class PDSystemOperator:
         if self.extra or self.vertex_blocks is not None:
             return False
         launch(pd_jacobi_sweep_kernel, self.n,
-                  [x, self.diag, self.offsets, self.neighbors, self.weights, b, self.diag_inv,
-                   self.free, float(alpha), sums, int(slot), x_out], device=self.device)
+               [x, self.diag, self.offsets, self.neighbors, self.weights, b, self.diag_inv,
+                self.free, float(alpha), sums, int(slot), x_out], device=self.device)
         return True
 
     def dense_scalar(self) -> np.ndarray:
@@ -734,7 +734,7 @@ class ProjectiveDynamics(Solver):
         n = m.num_vertices
         inv_dt2 = 1.0 / (dt * dt)
         launch(pd_predict_kernel, n,
-                  [state.x, state.v, m.inv_mass, wp.vec3(*m.gravity), dt, self.x0, self.y], device=d)
+               [state.x, state.v, m.inv_mass, wp.vec3(*m.gravity), dt, self.x0, self.y], device=d)
         cc = self._contact()
         A.vertex_blocks = cc.vblock if cc is not None else None
         if cc is not None:  # the step's contacts, from the predicted path
@@ -754,8 +754,8 @@ class ProjectiveDynamics(Solver):
         for k in range(K):
             if m.num_springs:
                 launch(pd_local_kernel, m.num_springs,
-                          [state.x, m.spring_indices, m.spring_rest_length, m.spring_k, self.d,
-                           self.f, self._objective, k], device=d)
+                       [state.x, m.spring_indices, m.spring_rest_length, m.spring_k, self.d,
+                        self.f, self._objective, k], device=d)
             for t in self.matrix_terms + self.explicit_terms:
                 t.eval(state.x, state.v, self.f, state.time)
             if cc is not None:  # contact projections, and their blocks in this global matrix
@@ -765,20 +765,20 @@ class ProjectiveDynamics(Solver):
             for t in self.energy_terms:
                 t.energy(state.x, self._energy_views[k])
             launch(pd_rhs_kernel, n,
-                      [state.x, self.y, m.mass, A.free, inv_dt2, self.f, self.b, self.dx,
-                       self._objective, self._gradient, k], device=d)
+                   [state.x, self.y, m.mass, A.free, inv_dt2, self.f, self.b, self.dx,
+                    self._objective, self._gradient, k], device=d)
             if k == K - 1 and self.tolerance is not None:
                 launch(pd_residual_kernel, n, [self.b, m.inv_mass, dt * dt, self._res],
-                          device=d)
+                       device=d)
                 launch(pd_converged_kernel, 1, [self._res, self.tolerance, self._short],
-                          device=d)
+                       device=d)
             if self.direct:
                 self._solve_direct(cc)
             else:
                 self._last_info = self.linear.solve(A, self.b, self.dx)
             launch(pd_update_kernel, n,
-                      [state.x, self.dx, self.x0, state.v, m.inv_mass, decay, 1.0 / dt,
-                       1 if k == K - 1 else 0, self._omegas[k], self.x_prev], device=d)
+                   [state.x, self.dx, self.x0, state.v, m.inv_mass, decay, 1.0 / dt,
+                    1 if k == K - 1 else 0, self._omegas[k], self.x_prev], device=d)
         if cc is not None and self.contact_iterations > 0 and not self.direct:
             self._more_step.zero_()
             self._evaluate(state, dt, cc, guard)
@@ -812,10 +812,10 @@ class ProjectiveDynamics(Solver):
         out = self._e_views[slot]
         out.zero_()
         launch(pd_energy_kernel, m.num_vertices,
-                  [x, v, m.mass, m.inv_mass, wp.vec3(*m.gravity), out], device=d)
+               [x, v, m.mass, m.inv_mass, wp.vec3(*m.gravity), out], device=d)
         if m.num_springs:
             launch(spring_energy64_kernel, m.num_springs,
-                      [x, m.spring_indices, m.spring_rest_length, m.spring_k, out], device=d)
+                   [x, m.spring_indices, m.spring_rest_length, m.spring_k, out], device=d)
         for t in self.energy_terms:  # bending (wind does work and has no energy)
             self._e32.zero_()
             t.energy(x, self._e32)
@@ -829,30 +829,30 @@ class ProjectiveDynamics(Solver):
             self._energy(state.x, state.v, 1)
         if m.num_springs:
             launch(pd_local_kernel, m.num_springs,
-                      [state.x, m.spring_indices, m.spring_rest_length, m.spring_k, self.d,
-                       self.f, self._objective, K], device=d)
+                   [state.x, m.spring_indices, m.spring_rest_length, m.spring_k, self.d,
+                    self.f, self._objective, K], device=d)
         for t in self.matrix_terms + self.explicit_terms:
             t.eval(state.x, state.v, self.f, state.time)
         cc.pd_local(state.x, self.f, self._objective, K, dt)
         cc.invert_diagonal(A.blocks, A.free, A.diag_inv)
         launch(pd_rhs_kernel, m.num_vertices,
-                  [state.x, self.y, m.mass, A.free, 1.0 / (dt * dt), self.f, self.b, self.dx,
-                   self._objective, self._gradient, K], device=d)
+               [state.x, self.y, m.mass, A.free, 1.0 / (dt * dt), self.f, self.b, self.dx,
+                self._objective, self._gradient, K], device=d)
         launch(pd_residual_kernel, m.num_vertices, [self.b, m.inv_mass, dt * dt,
-                                                       self._more_res], device=d)
+                                                    self._more_res], device=d)
         launch(pd_more_kernel, 1, [self._more_res, self.contact_residual,
-                                      self.contact_iterations, self._more_flag, self._more,
-                                      self._e64, self._energy_eps, int(guard),
-                                      self._still(cc)],
-                  device=d)
+                                   self.contact_iterations, self._more_flag, self._more,
+                                   self._e64, self._energy_eps, int(guard),
+                                   self._still(cc)],
+               device=d)
 
     def _contact_iteration(self, state, dt, cc, guard=False):
         """One more global step and update (velocity set), then `_evaluate`."""
         m = self.model
         self.linear.solve(self.operator, self.b, self.dx)
         launch(pd_update_kernel, m.num_vertices,
-                  [state.x, self.dx, self.x0, state.v, m.inv_mass, math.exp(-m.damping * dt),
-                   1.0 / dt, 1, 1.0, self.x_prev], device=self.device)
+               [state.x, self.dx, self.x0, state.v, m.inv_mass, math.exp(-m.damping * dt),
+                1.0 / dt, 1, 1.0, self.x_prev], device=self.device)
         self._evaluate(state, dt, cc, guard)
 
     def _solve_direct(self, cc=None):
