@@ -85,3 +85,29 @@ def test_cache_is_bounded(device, monkeypatch):
         launch(_axpy_kernel, 2, [x, y, 1.0, wp.vec3(0.0), 0], device=device)
         assert len(util._LAUNCHES) <= 8
     assert np.allclose(y.numpy(), sum(range(20)))
+
+
+def test_cache_keeps_no_struct_alive(device):
+    """A recorded launch holds no reference to its struct (nor to the arrays the struct
+    holds): a solver's contact record is freed with the solver, and a new struct is never
+    replayed from a dead one's command."""
+    import gc
+    import weakref
+
+    out = wp.zeros(3, dtype=float, device=device)
+    p = Pair()
+    p.a = wp.array([1.0, 2.0, 3.0], dtype=float, device=device)
+    p.scale = 1.0
+    launch(_struct_kernel, 3, [p, out], device=device)
+    gone = weakref.ref(p)
+    del p
+    gc.collect()
+    assert gone() is None
+    for k in range(5):  # new structs (some may reuse the dead one's id): their own values
+        q = Pair()
+        q.a = wp.array([float(k), 0.0, 1.0], dtype=float, device=device)
+        q.scale = 2.0
+        launch(_struct_kernel, 3, [q, out], device=device)
+        np.testing.assert_allclose(out.numpy(), [2.0 * k, 0.0, 2.0])
+        del q
+        gc.collect()

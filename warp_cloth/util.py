@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import weakref
 
 import warp as wp
 
@@ -98,7 +99,8 @@ def launch(kernel, dim, inputs, device=None) -> None:
     with the same pointer, shape, strides and dtype packs to the same bytes, so replaying for it
     is exact, and arrays are freed as usual. A struct argument is packed as its live C value
     (Warp's ``StructInstance._ctype``, updated in place when a field is assigned), so a replay
-    sees its current fields; the cache keeps the struct alive so that its id stays its own.
+    sees its current fields; the command is replayed only for that same struct object (a weak
+    reference: the cache keeps no struct, and the arrays it holds, alive).
 
     Falls back to a plain `wp.launch` (same result) while the device records a graph (the
     capture needs the launch's own arguments), and for ``None``, differentiable-array or other
@@ -129,6 +131,8 @@ def launch(kernel, dim, inputs, device=None) -> None:
         return wp.launch(kernel, dim, inputs, device=device)
     key = tuple(key)
     entry = _LAUNCHES.get(key)
+    if entry is not None and any(r() is not a for r, a in zip(entry[2], structs)):
+        entry = None  # a new struct where a dead one was (the same id): record again
     if entry is None:
         if len(_LAUNCHES) >= _LAUNCHES_CAP:
             _LAUNCHES.clear()
@@ -136,8 +140,7 @@ def launch(kernel, dim, inputs, device=None) -> None:
         if cmd is None:  # nothing to launch (a zero dimension)
             return None
         cmd.fwd_args = None  # no references to the arrays (see above)
-        # (the structs are kept alive so that their ids, in the key, stay theirs)
-        _LAUNCHES[key] = entry = [cmd, dict(values), structs]
+        _LAUNCHES[key] = entry = [cmd, dict(values), [weakref.ref(a) for a in structs]]
         cmd.launch()
         return None
     cmd, seen, _ = entry
