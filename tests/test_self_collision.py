@@ -703,9 +703,11 @@ def _pair_distances(mesh, x):
 
 def test_span_allowance_is_the_least_half_clearance_of_each_vertex_pairs():
     """`SelfCollision.clear`: each vertex's allowance is exactly min(cap, min over the non-
-    adjacent pairs it belongs to of (d - 1.01 h) / 2), brute force over every pair of a
-    crumpled sheet (so moving each vertex at most its allowance keeps every such pair h apart);
-    the cap covers the pairs farther than the clearance."""
+    adjacent pairs it belongs to of (d - 1.01 h_p) / 2), brute force over every pair of a
+    crumpled sheet (so moving each vertex at most its allowance keeps every such pair h_p
+    apart); the cap covers the pairs farther than the clearance. ``h_p`` is the pair's
+    thickness, ``h min(1, d_rest / (2 h))`` (`rest_scale`): this sheet's rest shape is the
+    crumpled one, so ``d_rest = d``."""
     import warp as wp
 
     from warp_cloth.collision.self_collision import SelfCollision
@@ -718,9 +720,10 @@ def test_span_allowance_is_the_least_half_clearance_of_each_vertex_pairs():
     sc.clear(wp.array(x, dtype=wp.vec3, device="cpu"))
     allow = sc._allow.numpy()
     quads, d = _pair_distances(model.mesh, x)
+    hp = h * np.minimum(1.0, 0.5 * d / h)
     expect = np.full(len(x), sc.reach_max)
-    np.minimum.at(expect, quads.ravel(), np.repeat(0.5 * (d - 1.01 * h), 4))
-    assert (d < sc.clearance).sum() > 50 and (expect < 0).sum() > 0  # near pairs, some within h
+    np.minimum.at(expect, quads.ravel(), np.repeat(0.5 * (d - 1.01 * hp), 4))
+    assert (d < sc.clearance).sum() > 50 and (d < 2 * h).sum() > 10  # near pairs, some scaled
     assert (expect < sc.reach_max).sum() > 10
     np.testing.assert_allclose(allow, expect, rtol=0, atol=2e-7)
 
@@ -847,11 +850,13 @@ def test_span_allowance_after_a_partial_pass_is_a_lower_bound():
     sc = SelfCollision(model, h)
     sc.plan(10, 0.25)
     x0 = model.mesh.vertices
+    _, d_rest = _pair_distances(model.mesh, x0)  # the rest shape is the crumpled one
+    hp = h * np.minimum(1.0, 0.5 * d_rest / h)  # each pair's thickness (`rest_scale`)
 
     def exact(x):
         quads, d = _pair_distances(model.mesh, x)
         out = np.full(len(x), sc.reach_max)
-        np.minimum.at(out, quads.ravel(), np.repeat(0.5 * (d - 1.01 * h), 4))
+        np.minimum.at(out, quads.ravel(), np.repeat(0.5 * (d - 1.01 * hp), 4))
         return out
 
     sc.clear(wp.array(x0, dtype=wp.vec3, device="cpu"))  # the first pass is a full one
@@ -919,3 +924,121 @@ def test_a_self_contact_at_a_pinned_vertex_is_reported_not_forced():
     assert np.linalg.norm(st.positions() - x0, axis=1).max() < 1e-3
     assert sc.stats["self_pinned"] == 1 and sc.stats["self_fallback_all"] == 0
     assert any("pinned vertex" in m for m, _ in sc.frame_end())
+
+
+def _thin_column_sheet(height=0.0):
+    """A 0.3 m sheet whose cells are 5 cm wide but for one column 1 mm wide: non-adjacent
+    vertex-triangle and edge-edge pairs across that column lie 1 mm apart at rest."""
+    from warp_cloth import TriMesh
+
+    xs = np.array([0.0, 0.05, 0.1, 0.15, 0.151, 0.2, 0.25, 0.3])
+    zs = np.linspace(0.0, 0.3, 7)
+    X, Z = np.meshgrid(xs, zs, indexing="ij")
+    v = np.stack([X.ravel(), np.full(X.size, height), Z.ravel()], axis=1)
+    idx = np.arange(X.size).reshape(X.shape)
+    tris = []
+    for i in range(len(xs) - 1):
+        for j in range(len(zs) - 1):
+            a, b, c, d = idx[i, j], idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]
+            tris += [(a, b, c), (a, c, d)]
+    return TriMesh(v, np.array(tris))
+
+
+def test_pairs_close_in_the_rest_shape_keep_half_their_rest_distance():
+    """A sheet with a 1 mm column under a 5 mm thickness: its pairs across the column are 1 mm
+    apart at rest. They keep half that (`rest_scale`), so the sheet at rest is left as it is;
+    held to the full thickness, the response pushed them 5 mm apart (the 1 mm edges stretched
+    by hundreds of percent). Two separate pieces as close keep the full thickness (the
+    pinned-vertex test above: its triangles are 2 mm apart)."""
+    import warp as wp
+
+    from warp_cloth import ClothModel, diagnostics
+    from warp_cloth.collision.self_collision import SelfCollision, rest_and_pieces
+
+    mesh = _thin_column_sheet()
+    model = ClothModel(mesh, device="cpu")
+    sc = SelfCollision(model, 0.005)
+    st = model.state()
+    x0 = st.positions()
+    sc.resolve(st, wp.array(x0, dtype=wp.vec3, device="cpu"), 1.0 / 600.0)
+    assert diagnostics.edge_strains(model, st.positions()).max() < 1e-6
+    assert sc.stats["self_fallback_all"] == 0 and sc.stats["self_zones"] == 0
+    pieces = rest_and_pieces(mesh)[:, 3]
+    assert set(pieces) == {0.0}
+    two = rest_and_pieces(type(mesh)(np.concatenate([mesh.vertices, mesh.vertices + 0.002]),
+                                     np.concatenate([mesh.triangles,
+                                                     mesh.triangles + len(mesh.vertices)])))
+    assert (two[:len(mesh.vertices), 3] == 0).all() and (two[len(mesh.vertices):, 3] == 1).all()
+    # with the thickness: only the vertices of pairs closer than 2 h at rest keep their piece
+    # (the others skip the rest distance): here the columns at x = 0.15 and 0.151 and their
+    # neighbours' triangles' corners; none on the built-in grids
+    flagged = rest_and_pieces(mesh, 0.005)[:, 3] >= 0
+    xs = np.round(mesh.vertices[flagged, 0], 4)
+    assert set(xs) <= {0.1, 0.15, 0.151, 0.2} and {0.15, 0.151} <= set(xs)
+    assert (sc.rest.numpy()[:, 3] >= 0).sum() == flagged.sum()
+    assert (rest_and_pieces(sheet_model(res=16).mesh, 0.005)[:, 3] == -1).all()
+
+
+@pytest.mark.parametrize("solver_name", ["explicit", "implicit"])
+def test_sheet_with_short_edges_falls_without_stretching(solver_name):
+    """The same sheet dropped 2 cm onto the floor with self-collision on: the short edges keep
+    their length (without `rest_scale`: several hundred percent of strain) and nothing crosses."""
+    from warp_cloth import ClothModel
+    from warp_cloth.collision import Plane
+    from warp_cloth.scenes import _finish
+
+    model = ClothModel(_thin_column_sheet(0.02), density=0.15, stretch_stiffness=1000.0,
+                       damping=0.1, device="cpu")
+    stage = CollisionStage(model, [Plane()], thickness=0.005, self_collision=True)
+    scene = _finish(model, solver_name, None, (), 60.0, 20, None, (), 10.0, "thin-column",
+                    collision=stage)
+    stats = scene.run(None, quiet=True, energy=False, check_intersections=True)
+    assert stats.max_strain < 0.05, stats.max_strain
+    assert stats.crossing_frames == 0
+
+
+class _PushThrough:
+    """A limit-like correction whose pass after contact moves one vertex 6 mm straight down
+    (through the layer below) and says it moved something: what a strain limit's sweeps can do,
+    since they see obstacles but not the cloth's other layers."""
+
+    capturable = True
+
+    def __init__(self, vertex, device="cpu"):
+        self.vertex = vertex
+
+    def apply(self, state, x_start, dt):
+        pass
+
+    def after_contact(self, state, x_start, dt, stage):
+        x = state.x.numpy()
+        x[self.vertex, 1] -= 0.006
+        state.x.assign(x)
+        return True
+
+    def moved_into(self, flag):
+        flag.fill_(1)
+
+
+@pytest.mark.parametrize("solver_name", ["explicit", "pbd"])
+def test_a_limit_pass_after_contact_cannot_push_the_cloth_through_itself(solver_name):
+    """Two triangles of separate pieces, a free corner of the upper one 3 mm above the lower
+    one: a correction's pass after contact drops it 6 mm, through the lower triangle. The step
+    then runs the self-collision response again on that pass's path (`Solver._self_again`), so
+    the step ends with no crossing and the corner above the lower triangle (without it
+    crossing pairs, the corner 3 mm below)."""
+    from warp_cloth import ClothModel, TriMesh
+    from warp_cloth.collision.check import self_crossings
+    from warp_cloth.solvers import make_solver
+
+    v = np.array([[-0.1, 0.0, -0.1], [0.1, 0.0, -0.1], [0.0, 0.0, 0.1],
+                  [0.0, 0.003, 0.0], [0.3, 0.003, 0.05], [0.3, 0.003, -0.05]])
+    mesh = TriMesh(v, np.array([[0, 1, 2], [3, 4, 5]]))
+    model = ClothModel(mesh, pins=[0, 1, 2, 4, 5], gravity=(0.0, 0.0, 0.0), device="cpu")
+    stage = CollisionStage(model, [], thickness=0.001, self_collision=True)
+    solver = make_solver(solver_name, model, collision=stage, corrections=[_PushThrough(3)])
+    st = model.state()
+    solver.step(st, 1.0 / 600.0)
+    x = st.positions()
+    assert self_crossings(x, mesh.triangles, mesh.edges) == 0
+    assert x[3, 1] > 0.0

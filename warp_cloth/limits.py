@@ -266,6 +266,13 @@ def limit_loop_kernel(counts: wp.array(dtype=wp.int32), excess: wp.array(dtype=f
 
 
 @wp.kernel
+def limit_moved_kernel(counts: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int32)):
+    """``flag[0] = 1`` when the last pass ran a sweep (`_JacobiLimit.moved_into`)."""
+    if counts[C_SWEEPS] > 0:
+        flag[0] = 1
+
+
+@wp.kernel
 def limit_velocity_kernel(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
@@ -504,21 +511,30 @@ class _JacobiLimit:
             wp.capture_while(self._cond, self._adaptive_sweep, state=state, dt=dt)
         self._finish(state, dt)
 
-    def after_contact(self, state, x_start, dt: float, stage) -> None:
+    def moved_into(self, flag) -> None:
+        """``flag[0] = 1`` if the last pass (`apply`, `after_contact`) ran any sweep, i.e.
+        moved vertices (device-side: capturable)."""
+        launch(limit_moved_kernel, 1, [self._counts, flag], device=self.device)
+
+    def after_contact(self, state, x_start, dt: float, stage) -> bool:
         """Run after the collision stage's response (`Solver.step`): friction's tangential
         correction holds vertices where they touch and can stretch the edges beside them
         (measured 2.5 % under a 1 % limit on Newton's cloth_hanging scene). With a tolerance,
         this pass checks the bounds and, only where one is broken, sweeps again with the
         stage's contact projection (`CollisionStage.project_positions`: positions only, the
         exact test of every vertex) after each sweep, so the pass ends with both the bounds
-        and non-penetration. Velocities get ``dx / dt`` as in `apply`."""
+        and non-penetration. Velocities get ``dx / dt`` as in `apply`. Returns whether the
+        pass ran (`moved_into` then tells on the device whether it moved anything: the solver
+        runs the self-collision response again after it, since the sweeps do not see the
+        cloth's other layers)."""
         if self.tolerance is None or self.is_noop or self._num_elements() == 0:
-            return
+            return False
         self._contact = (stage, x_start)
         try:
             self.apply(state, x_start, dt)
         finally:
             self._contact = None
+        return True
 
     def _adaptive_sweep(self, state, dt):
         k = self._group

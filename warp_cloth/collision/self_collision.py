@@ -13,7 +13,11 @@ Per step, on the cloth's path from ``x_start`` to ``x`` (``physics.md`` 2.18-2.2
    there, is a contact. Each becomes a record entry (`warp_cloth.collision.record`): the four
    vertices with weights ``(1, -b0, -b1, -b2)`` (vertex-triangle) or ``(1 - s, s, -(1 - t), -t)``
    (edge-edge), the normal from the second element to the first at the time of impact (the side
-   they were on before meeting) and the thickness as offset: ``n . sum w_j x_j >= h``.
+   they were on before meeting) and the thickness as offset: ``n . sum w_j x_j >= h``. A pair of
+   one connected piece whose primitives lie closer than twice the thickness in the rest shape
+   (a mesh with edges shorter than the thickness) keeps half its rest distance instead of the
+   thickness (`rest_scale`): held to the thickness, the response stretched such short edges to
+   it (823 % strain on a Delaunay sheet with 0.65 mm edges at 5 mm).
 3. **Response** (Bridson et al. 2002, combined Jacobi-style with atomics): rounds of projection
    of the violated entries, each moving its vertices along ``n`` by their share
    ``w_j / m_j / sum w_k^2 / m_k`` of the violation, averaged per vertex, ``v += dx / dt``;
@@ -52,6 +56,7 @@ conditional (`SelfCollision.resolve`).
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from ..util import launch
@@ -89,6 +94,9 @@ ALLOWANCE_STEPS = 8
 CLEAR_FULL_FRACTION = 0.25
 #: the fail-safe acts on paths that come this close (a fraction of the thickness)
 FAILSAFE_GAP = 0.05
+#: a pair closer than twice the thickness in the rest shape keeps this share of its rest
+#: distance instead of the thickness (`rest_scale`)
+REST_SHARE = wp.constant(0.5)
 
 
 @wp.func
@@ -119,9 +127,62 @@ def ee_ids(e: int, f: int, edges: wp.array2d(dtype=wp.int32), inv_mass: wp.array
 
 
 @wp.func
+def rest_scale(d_rest: wp.float64, h: float):
+    """The share of the thickness ``h`` kept by a pair of one connected piece of cloth whose
+    primitives lie ``d_rest`` apart in the rest shape: ``min(1, REST_SHARE d_rest / h)``. A mesh
+    whose edges are shorter than the thickness has such pairs closer than it at rest without
+    touching (a vertex and a triangle a ring or two away on a flat sheet); held to the full
+    thickness, the response stretched the short edges to it (a Delaunay sheet with 0.65 mm
+    edges: 823 % strain in 10 frames at 5 mm). Such a pair keeps half its rest distance
+    instead; a pair at least twice the thickness apart at rest (every pair of the built-in
+    scenes' grids) keeps the thickness, and so does every pair of two separate pieces (their
+    rest placement is not a shape: `SelfCollision.rest`)."""
+    share = float(1.0)
+    if h > 0.0:
+        share = wp.min(share, REST_SHARE * float(d_rest) / h)
+    return share
+
+
+@wp.func
+def shared_gap(gap: float, sep: float, share: float):
+    """A detection distance ``gap`` for a pair that keeps ``share`` of the thickness ``sep``:
+    the part of ``gap`` up to the thickness scales with it (the fail-safe's 5 % of the thickness
+    stays 5 % of the pair's), a margin beyond it does not (the spans' reach, whose pairs `hold`
+    keeps apart, and the solve's margin are distances the vertices move, whatever the pair)."""
+    return share * wp.min(gap, sep) + wp.max(gap - sep, 0.0)
+
+
+@wp.func
+def rest_point(rest: wp.array(dtype=wp.vec4), i: int):
+    r = rest[i]
+    return wp.vec3d(wp.float64(r[0]), wp.float64(r[1]), wp.float64(r[2]))
+
+
+@wp.func
+def vt_rest_scale(v: int, ia: int, ib: int, ic: int, rest: wp.array(dtype=wp.vec4), h: float):
+    """`rest_scale` of a vertex-triangle pair (1 across separate pieces, and when ``v`` has no
+    pair close at rest: `rest_and_pieces`)."""
+    if rest[v][3] < 0.0 or rest[v][3] != rest[ia][3]:
+        return float(1.0)
+    return rest_scale(vt_distance(rest_point(rest, v), rest_point(rest, ia),
+                                  rest_point(rest, ib), rest_point(rest, ic)), h)
+
+
+@wp.func
+def ee_rest_scale(ia: int, ib: int, ic: int, id: int, rest: wp.array(dtype=wp.vec4), h: float):
+    """`rest_scale` of an edge-edge pair (1 across separate pieces, and when ``ia`` has no pair
+    close at rest)."""
+    if rest[ia][3] < 0.0 or rest[ia][3] != rest[ic][3]:
+        return float(1.0)
+    return rest_scale(ee_distance(rest_point(rest, ia), rest_point(rest, ib),
+                                  rest_point(rest, ic), rest_point(rest, id)), h)
+
+
+@wp.func
 def vt_pair(v: int, t: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
             tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
-            inv_mass: wp.array(dtype=float), rec: ContactRecord,
+            inv_mass: wp.array(dtype=float),
+        rest: wp.array(dtype=wp.vec4), rec: ContactRecord,
             pairs: wp.array(dtype=wp.vec2i), npairs: wp.array(dtype=int)):
     """Vertex ``v`` against triangle ``t`` (a broad-phase candidate): skipped when ``v`` is one
     of its corners or all four are pinned; with a ``pairs`` buffer the pair is only listed
@@ -141,18 +202,28 @@ def vt_pair(v: int, t: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.v
                                  CCD_ITERATIONS)
     if s == CCD_MISS:
         return
+    # a pair close in the rest shape keeps less (`rest_scale`): tested again with its share
+    # (a miss at the full gap is a miss at any smaller one, so only hits pay for this)
+    share = vt_rest_scale(v, ia, ib, ic, rest, sep)
+    if share < 1.0:
+        s, toi = ccd_vertex_triangle(d3(a0), d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(a1),
+                                     d3(x1[ia]), d3(x1[ib]), d3(x1[ic]),
+                                     wp.float64(shared_gap(gap, sep, share)), CCD_ITERATIONS)
+        if s == CCD_MISS:
+            return
     n, bw, ok = vt_impact(a0, a1, x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], toi)
     if not ok:
         return
     w = wp.vec4(1.0, -bw[0], -bw[1], -bw[2])
-    record_append(rec, KIND_VERTEX_TRIANGLE, wp.vec4i(v, ia, ib, ic), w, n, sep,
+    record_append(rec, KIND_VERTEX_TRIANGLE, wp.vec4i(v, ia, ib, ic), w, n, share * sep,
                   wp.vec3(0.0), 0.0, 0.0, -1)
 
 
 @wp.func
 def ee_pair(e: int, f: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
             edges: wp.array2d(dtype=wp.int32), gap: float, sep: float,
-            inv_mass: wp.array(dtype=float), rec: ContactRecord,
+            inv_mass: wp.array(dtype=float),
+        rest: wp.array(dtype=wp.vec4), rec: ContactRecord,
             pairs: wp.array(dtype=wp.vec2i), npairs: wp.array(dtype=int)):
     """Edge ``e`` against edge ``f > e`` (a candidate): skipped when they share a vertex or all
     four are pinned; listed or tested as `vt_pair`."""
@@ -170,11 +241,18 @@ def ee_pair(e: int, f: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.v
                            d3(x1[ib]), d3(x1[ic]), d3(x1[id]), wp.float64(gap), CCD_ITERATIONS)
     if s == CCD_MISS:
         return
+    share = ee_rest_scale(ia, ib, ic, id, rest, sep)  # as in `vt_pair`
+    if share < 1.0:
+        s, toi = ccd_edge_edge(d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(x0[id]), d3(x1[ia]),
+                               d3(x1[ib]), d3(x1[ic]), d3(x1[id]),
+                               wp.float64(shared_gap(gap, sep, share)), CCD_ITERATIONS)
+        if s == CCD_MISS:
+            return
     n, s1, t1, ok = ee_impact(x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], x0[id], x1[id], toi)
     if not ok:
         return
     w = wp.vec4(1.0 - s1, s1, -(1.0 - t1), -t1)
-    record_append(rec, KIND_EDGE_EDGE, wp.vec4i(ia, ib, ic, id), w, n, sep, wp.vec3(0.0),
+    record_append(rec, KIND_EDGE_EDGE, wp.vec4i(ia, ib, ic, id), w, n, share * sep, wp.vec3(0.0),
                   0.0, 0.0, -1)
 
 
@@ -191,7 +269,8 @@ def edge_box(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
 @wp.kernel
 def self_vt_bvh_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                        tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
-                       inv_mass: wp.array(dtype=float), done: wp.array(dtype=int),
+                       inv_mass: wp.array(dtype=float),
+        rest: wp.array(dtype=wp.vec4), done: wp.array(dtype=int),
                        active: wp.array(dtype=int), rec: ContactRecord,
                        pairs: wp.array(dtype=wp.vec2i), npairs: wp.array(dtype=int)):
     """Vertex ``v`` against the triangles whose swept box meets its own (BVH); nothing once
@@ -207,7 +286,7 @@ def self_vt_bvh_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array
     q = wp.bvh_query_aabb(bvh, lo, hi)
     t = int(0)
     while wp.bvh_query_next(q, t):
-        vt_pair(v, t, x0, x1, tris, gap, sep, inv_mass, rec, pairs, npairs)
+        vt_pair(v, t, x0, x1, tris, gap, sep, inv_mass, rest, rec, pairs, npairs)
 
 
 @wp.kernel
@@ -215,6 +294,7 @@ def self_tv_bvh_kernel(vbvh: wp.uint64, lowers: wp.array(dtype=wp.vec3),
                        uppers: wp.array(dtype=wp.vec3), x0: wp.array(dtype=wp.vec3),
                        x1: wp.array(dtype=wp.vec3), tris: wp.array2d(dtype=wp.int32),
                        gap: float, sep: float, inv_mass: wp.array(dtype=float),
+        rest: wp.array(dtype=wp.vec4),
                        done: wp.array(dtype=int), active: wp.array(dtype=int),
                        rec: ContactRecord, pairs: wp.array(dtype=wp.vec2i),
                        npairs: wp.array(dtype=int)):
@@ -230,7 +310,7 @@ def self_tv_bvh_kernel(vbvh: wp.uint64, lowers: wp.array(dtype=wp.vec3),
     v = int(0)
     while wp.bvh_query_next(q, v):
         if active[v] == 0:
-            vt_pair(v, t, x0, x1, tris, gap, sep, inv_mass, rec, pairs, npairs)
+            vt_pair(v, t, x0, x1, tris, gap, sep, inv_mass, rest, rec, pairs, npairs)
 
 
 @wp.kernel
@@ -253,7 +333,8 @@ def self_vt_grid_kernel(grid: wp.uint64, lowers: wp.array(dtype=wp.vec3),
                         uppers: wp.array(dtype=wp.vec3), rmax: wp.array(dtype=float),
                         x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                         tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
-                        inv_mass: wp.array(dtype=float), done: wp.array(dtype=int),
+                        inv_mass: wp.array(dtype=float),
+        rest: wp.array(dtype=wp.vec4), done: wp.array(dtype=int),
                         rec: ContactRecord, pairs: wp.array(dtype=wp.vec2i),
                         npairs: wp.array(dtype=int)):
     """Vertex ``v`` against the triangles whose swept box meets its own (hash grid of box
@@ -267,13 +348,14 @@ def self_vt_grid_kernel(grid: wp.uint64, lowers: wp.array(dtype=wp.vec3),
     t = int(0)
     while wp.hash_grid_query_next(q, t):
         if boxes_overlap(lo, hi, lowers[t], uppers[t]):
-            vt_pair(v, t, x0, x1, tris, gap, sep, inv_mass, rec, pairs, npairs)
+            vt_pair(v, t, x0, x1, tris, gap, sep, inv_mass, rest, rec, pairs, npairs)
 
 
 @wp.kernel
 def self_ee_bvh_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                        edges: wp.array2d(dtype=wp.int32), gap: float, sep: float,
-                       inv_mass: wp.array(dtype=float), done: wp.array(dtype=int),
+                       inv_mass: wp.array(dtype=float),
+        rest: wp.array(dtype=wp.vec4), done: wp.array(dtype=int),
                        active: wp.array(dtype=int), rec: ContactRecord,
                        pairs: wp.array(dtype=wp.vec2i), npairs: wp.array(dtype=int)):
     """Edge ``e`` against the edges of higher index whose swept box meets its own (BVH);
@@ -291,10 +373,10 @@ def self_ee_bvh_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array
     f = int(0)
     while wp.bvh_query_next(q, f):
         if f > e:
-            ee_pair(e, f, x0, x1, edges, gap, sep, inv_mass, rec, pairs, npairs)
+            ee_pair(e, f, x0, x1, edges, gap, sep, inv_mass, rest, rec, pairs, npairs)
         elif some:  # a lower edge with no active vertex does not query: this pair is ours
             if active[edges[f, 0]] + active[edges[f, 1]] == 0:
-                ee_pair(f, e, x0, x1, edges, gap, sep, inv_mass, rec, pairs, npairs)
+                ee_pair(f, e, x0, x1, edges, gap, sep, inv_mass, rest, rec, pairs, npairs)
 
 
 @wp.kernel
@@ -302,7 +384,8 @@ def self_ee_grid_kernel(grid: wp.uint64, lowers: wp.array(dtype=wp.vec3),
                         uppers: wp.array(dtype=wp.vec3), rmax: wp.array(dtype=float),
                         x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                         edges: wp.array2d(dtype=wp.int32), gap: float, sep: float,
-                        inv_mass: wp.array(dtype=float), done: wp.array(dtype=int),
+                        inv_mass: wp.array(dtype=float),
+        rest: wp.array(dtype=wp.vec4), done: wp.array(dtype=int),
                         rec: ContactRecord, pairs: wp.array(dtype=wp.vec2i),
                         npairs: wp.array(dtype=int)):
     """Edge ``e`` against the edges of higher index whose swept box meets its own (hash grid);
@@ -316,7 +399,7 @@ def self_ee_grid_kernel(grid: wp.uint64, lowers: wp.array(dtype=wp.vec3),
     f = int(0)
     while wp.hash_grid_query_next(q, f):
         if f > e and boxes_overlap(lo, hi, lowers[f], uppers[f]):
-            ee_pair(e, f, x0, x1, edges, gap, sep, inv_mass, rec, pairs, npairs)
+            ee_pair(e, f, x0, x1, edges, gap, sep, inv_mass, rest, rec, pairs, npairs)
 
 
 @wp.kernel
@@ -389,17 +472,19 @@ def clearance_share(d: float, h: float, i0: int, i1: int, i2: int, i3: int,
 @wp.func
 def clearance_vt_pair(v: int, t: int, x: wp.array(dtype=wp.vec3),
                       tris: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
+        rest: wp.array(dtype=wp.vec4),
                       h: float, allow: wp.array(dtype=float)):
     ia, ib, ic, ok = vt_ids(v, t, tris, inv_mass)
     if not ok:
         return
     d = float(vt_distance(d3(x[v]), d3(x[ia]), d3(x[ib]), d3(x[ic])))
-    clearance_share(d, h, v, ia, ib, ic, allow)
+    clearance_share(d, vt_rest_scale(v, ia, ib, ic, rest, h) * h, v, ia, ib, ic, allow)
 
 
 @wp.kernel
 def clearance_vt_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
                         tris: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
+        rest: wp.array(dtype=wp.vec4),
                         half: float, h: float, moved: wp.array(dtype=int),
                         allow: wp.array(dtype=float)):
     """Vertex ``v`` against the triangles within ``2 half`` (boxes inflated by ``half`` each):
@@ -413,13 +498,14 @@ def clearance_vt_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
     q = wp.bvh_query_aabb(bvh, p - wp.vec3(half), p + wp.vec3(half))
     t = int(0)
     while wp.bvh_query_next(q, t):
-        clearance_vt_pair(v, t, x, tris, inv_mass, h, allow)
+        clearance_vt_pair(v, t, x, tris, inv_mass, rest, h, allow)
 
 
 @wp.kernel
 def clearance_tv_kernel(vbvh: wp.uint64, lowers: wp.array(dtype=wp.vec3),
                         uppers: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3),
                         tris: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
+        rest: wp.array(dtype=wp.vec4),
                         h: float, moved: wp.array(dtype=int), allow: wp.array(dtype=float)):
     """Triangle ``t`` with a moved corner (its box inflated by half the clearance, ``lowers`` /
     ``uppers``) against the vertices that did not move within the clearance (the vertices'
@@ -431,23 +517,25 @@ def clearance_tv_kernel(vbvh: wp.uint64, lowers: wp.array(dtype=wp.vec3),
     v = int(0)
     while wp.bvh_query_next(q, v):
         if moved[v] == 0:
-            clearance_vt_pair(v, t, x, tris, inv_mass, h, allow)
+            clearance_vt_pair(v, t, x, tris, inv_mass, rest, h, allow)
 
 
 @wp.func
 def clearance_ee_pair(e: int, f: int, x: wp.array(dtype=wp.vec3),
                       edges: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
+        rest: wp.array(dtype=wp.vec4),
                       h: float, allow: wp.array(dtype=float)):
     ia, ib, ic, id, ok = ee_ids(e, f, edges, inv_mass)
     if not ok:
         return
     d = float(ee_distance(d3(x[ia]), d3(x[ib]), d3(x[ic]), d3(x[id])))
-    clearance_share(d, h, ia, ib, ic, id, allow)
+    clearance_share(d, ee_rest_scale(ia, ib, ic, id, rest, h) * h, ia, ib, ic, id, allow)
 
 
 @wp.kernel
 def clearance_ee_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
                         edges: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
+        rest: wp.array(dtype=wp.vec4),
                         lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3),
                         h: float, moved: wp.array(dtype=int), allow: wp.array(dtype=float)):
     """Edge ``e`` against the edges of higher index within reach (`clearance_vt_kernel`); with
@@ -462,10 +550,10 @@ def clearance_ee_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
     f = int(0)
     while wp.bvh_query_next(q, f):
         if f > e:
-            clearance_ee_pair(e, f, x, edges, inv_mass, h, allow)
+            clearance_ee_pair(e, f, x, edges, inv_mass, rest, h, allow)
         elif some:
             if moved[edges[f, 0]] + moved[edges[f, 1]] == 0:
-                clearance_ee_pair(f, e, x, edges, inv_mass, h, allow)
+                clearance_ee_pair(f, e, x, edges, inv_mass, rest, h, allow)
 
 
 @wp.kernel
@@ -558,6 +646,106 @@ def step_begin_kernel(done: wp.array(dtype=int), violated: wp.array(dtype=int),
         flags[2] = 0
 
 
+@wp.kernel
+def rest_close_vt_kernel(bvh: wp.uint64, rest: wp.array(dtype=wp.vec4),
+                         tris: wp.array2d(dtype=wp.int32), reach: float,
+                         flag: wp.array(dtype=int)):
+    """Vertex ``v`` against the triangles of its piece within ``reach`` of it in the rest shape
+    (not its own): the four vertices of each such pair flagged."""
+    v = wp.tid()
+    p = rest_point(rest, v)
+    c = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
+    q = wp.bvh_query_aabb(bvh, c - wp.vec3(reach), c + wp.vec3(reach))
+    t = int(0)
+    while wp.bvh_query_next(q, t):
+        ia = tris[t, 0]
+        ib = tris[t, 1]
+        ic = tris[t, 2]
+        if ia != v and ib != v and ic != v and rest[v][3] == rest[ia][3]:
+            d = vt_distance(p, rest_point(rest, ia), rest_point(rest, ib), rest_point(rest, ic))
+            if d < wp.float64(reach):
+                flag[v] = 1
+                flag[ia] = 1
+                flag[ib] = 1
+                flag[ic] = 1
+
+
+@wp.kernel
+def rest_close_ee_kernel(bvh: wp.uint64, rest: wp.array(dtype=wp.vec4),
+                         edges: wp.array2d(dtype=wp.int32), lowers: wp.array(dtype=wp.vec3),
+                         uppers: wp.array(dtype=wp.vec3), reach: float,
+                         flag: wp.array(dtype=int)):
+    """Edge ``e`` against the edges of its piece within ``reach`` in the rest shape sharing no
+    vertex with it: the four vertices of each such pair flagged."""
+    e = wp.tid()
+    ia = edges[e, 0]
+    ib = edges[e, 1]
+    q = wp.bvh_query_aabb(bvh, lowers[e] - wp.vec3(reach), uppers[e] + wp.vec3(reach))
+    f = int(0)
+    while wp.bvh_query_next(q, f):
+        ic = edges[f, 0]
+        id = edges[f, 1]
+        if f > e and ic != ia and ic != ib and id != ia and id != ib:
+            if rest[ia][3] == rest[ic][3]:
+                d = ee_distance(rest_point(rest, ia), rest_point(rest, ib), rest_point(rest, ic),
+                                rest_point(rest, id))
+                if d < wp.float64(reach):
+                    flag[ia] = 1
+                    flag[ib] = 1
+                    flag[ic] = 1
+                    flag[id] = 1
+
+
+def rest_and_pieces(mesh, thickness: float = 0.0, device=None) -> np.ndarray:
+    """(N, 4) float32: each vertex's rest position and, as the fourth coordinate, the index of
+    its connected piece (the components of the mesh's edge graph, numbered from 0; float32
+    holds them exactly up to 2^24), or -1 for a vertex of no pair of its piece closer than
+    ``2 thickness`` in the rest shape (`rest_scale` is 1 for every pair of such a vertex, and
+    is not computed: the built-in scenes' grids have no such pair). With ``thickness`` 0 every
+    vertex keeps its piece. The pairs are found once, with two BVHs over the rest shape."""
+    n = len(mesh.vertices)
+    parent = np.arange(n)
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for a, b in np.asarray(mesh.edges):
+        ra, rb = root(int(a)), root(int(b))
+        if ra != rb:
+            parent[max(ra, rb)] = min(ra, rb)
+    roots = np.array([root(i) for i in range(n)])
+    _, piece = np.unique(roots, return_inverse=True)
+    out = np.zeros((n, 4), dtype=np.float32)
+    out[:, :3] = mesh.vertices
+    out[:, 3] = piece
+    reach = 2.0 * float(thickness)
+    tris = np.asarray(mesh.triangles, dtype=np.int32)
+    edges = np.asarray(mesh.edges, dtype=np.int32)
+    if reach <= 0.0 or n == 0 or not len(tris):
+        return out
+    x = np.asarray(mesh.vertices, dtype=np.float32)
+    rest = wp.array(out, dtype=wp.vec4, device=device)
+    flag = wp.zeros(n, dtype=int, device=device)
+    t_lo, t_hi = x[tris].min(axis=1), x[tris].max(axis=1)
+    tri_bvh = wp.Bvh(wp.array(t_lo, dtype=wp.vec3, device=device),
+                     wp.array(t_hi, dtype=wp.vec3, device=device))
+    wp.launch(rest_close_vt_kernel, n, [tri_bvh.id, rest, wp.array(tris, dtype=wp.int32,
+                                                                     device=device),
+                                        reach, flag], device=device)
+    if len(edges):
+        e_lo = wp.array(x[edges].min(axis=1), dtype=wp.vec3, device=device)
+        e_hi = wp.array(x[edges].max(axis=1), dtype=wp.vec3, device=device)
+        edge_bvh = wp.Bvh(e_lo, e_hi)
+        wp.launch(rest_close_ee_kernel, len(edges),
+                  [edge_bvh.id, rest, wp.array(edges, dtype=wp.int32, device=device), e_lo,
+                   e_hi, reach, flag], device=device)
+    out[flag.numpy() == 0, 3] = -1.0
+    return out
+
+
 class SelfCollision:
     """Self-collision of the cloth (module docstring).
 
@@ -591,6 +779,10 @@ class SelfCollision:
             raise ValueError("self-collision rounds and iterations must be >= 1")
         self.broad = ClothBroadPhase(model, broadphase)
         n = model.num_vertices
+        #: the rest shape and, as the fourth coordinate, each vertex's connected piece: pairs of
+        #: one piece that lie close in it keep less than the thickness (`rest_scale`)
+        self.rest = wp.array(rest_and_pieces(model.mesh, self.thickness, d), dtype=wp.vec4,
+                             device=d)
         self.capacity = int(capacity or 16 * (n + self.broad.num_edges))
         self.record = make_record(self.capacity, d)
         self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -663,11 +855,13 @@ class SelfCollision:
             if vt:
                 launch(self_vt_grid_kernel, m.num_vertices,
                        [b.tri_grid.id, b.lowers, b.uppers, b.rmax, *common, b.tris, gap,
-                        self.thickness, m.inv_mass, done, record, vt_pairs, npairs], device=d)
+                        self.thickness, m.inv_mass, self.rest, done, record, vt_pairs, npairs],
+                       device=d)
             if ee:
                 launch(self_ee_grid_kernel, b.num_edges,
                        [b.edge_grid.id, b.elowers, b.euppers, b.rmax, *common, b.edges, gap,
-                        self.thickness, m.inv_mass, done, record, ee_pairs, npairs], device=d)
+                        self.thickness, m.inv_mass, self.rest, done, record, ee_pairs, npairs],
+                       device=d)
         else:
             active = self._no_int
             if self._in_span:  # allowances from the span's start: only the active part queries
@@ -677,17 +871,17 @@ class SelfCollision:
                        device=d)
             if vt:
                 launch(self_vt_bvh_kernel, m.num_vertices,
-                       [b.tri_bvh.id, *common, b.tris, gap, self.thickness, m.inv_mass, done,
-                        active, record, vt_pairs, npairs], device=d)
+                       [b.tri_bvh.id, *common, b.tris, gap, self.thickness, m.inv_mass,
+                        self.rest, done, active, record, vt_pairs, npairs], device=d)
                 if self._in_span:
                     launch(self_tv_bvh_kernel, b.num_tris,
                            [b.vertex_bvh.id, b.lowers, b.uppers, *common, b.tris, gap,
-                            self.thickness,
-                            m.inv_mass, done, active, record, vt_pairs, npairs], device=d)
+                            self.thickness, m.inv_mass, self.rest, done, active, record,
+                            vt_pairs, npairs], device=d)
             if ee:
                 launch(self_ee_bvh_kernel, b.num_edges,
                        [b.edge_bvh.id, *common, b.edges, gap, self.thickness, m.inv_mass,
-                        done, active, record, ee_pairs, npairs], device=d)
+                        self.rest, done, active, record, ee_pairs, npairs], device=d)
 
     # ------------------------------------------------------------------ spans
     def plan(self, substeps: int, motion: float) -> None:
@@ -794,11 +988,12 @@ class SelfCollision:
         el, eu = self._clear_boxes[2:4]
         if b.num_tris:
             launch(clearance_vt_kernel, m.num_vertices,
-                   [tb.id, x, b.tris, m.inv_mass, half, self.thickness, self._no_int,
+                   [tb.id, x, b.tris, m.inv_mass, self.rest, half, self.thickness, self._no_int,
                     self._allow], device=d)
         if b.num_edges:
             launch(clearance_ee_kernel, b.num_edges,
-                   [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._no_int,
+                   [eb.id, x, b.edges, m.inv_mass, self.rest, el, eu, self.thickness,
+                    self._no_int,
                     self._allow], device=d)
         launch(clearance_keep_kernel, m.num_vertices,
                [x, self._allow, self._ref, self._allow_ref, self._full],
@@ -815,15 +1010,17 @@ class SelfCollision:
         el, eu = self._clear_boxes[2:4]
         if b.num_tris:
             launch(clearance_vt_kernel, m.num_vertices,
-                   [tb.id, x, b.tris, m.inv_mass, half, self.thickness, self._moved,
+                   [tb.id, x, b.tris, m.inv_mass, self.rest, half, self.thickness, self._moved,
                     self._allow], device=d)
             tl, tu = self._clear_boxes[:2]
             launch(clearance_tv_kernel, b.num_tris,
-                   [vb.id, tl, tu, x, b.tris, m.inv_mass, self.thickness, self._moved,
+                   [vb.id, tl, tu, x, b.tris, m.inv_mass, self.rest, self.thickness,
+                    self._moved,
                     self._allow], device=d)
         if b.num_edges:
             launch(clearance_ee_kernel, b.num_edges,
-                   [eb.id, x, b.edges, m.inv_mass, el, eu, self.thickness, self._moved,
+                   [eb.id, x, b.edges, m.inv_mass, self.rest, el, eu, self.thickness,
+                    self._moved,
                     self._allow], device=d)
 
     def step(self, state, x_start, dt: float, obstacles=None) -> None:

@@ -7,7 +7,8 @@ A step is composed, in this order, of only the parts the scene uses (GUIDE.md):
     -> collision stage (`warp_cloth.collision.CollisionStage.resolve`: continuous test,
        projection, impulse) -> limits again with the contact projection inside their sweeps
        (``after_contact``: only where friction's response left an element outside its bound)
-       -> time += dt
+       -> if those sweeps moved anything and the stage has self-collision: its response again,
+          on the path from before them (`Solver._self_again`) -> time += dt
 
 Each correction changes positions and adds the same change divided by dt to the velocities
 (``v += (x_new - x_old) / dt``, the position-based velocity update of the notes, L1344), so
@@ -91,6 +92,19 @@ class Solver:
         if self._x_start is None:
             self._x_start = wp.zeros(self.model.num_vertices, dtype=wp.vec3, device=self.device)
 
+    def _self_again_prepare(self, state) -> None:
+        """Before the limits' pass after contact: the positions it starts from, and its flag."""
+        if getattr(self, "_x_mid", None) is None:
+            self._x_mid = wp.zeros(self.model.num_vertices, dtype=wp.vec3, device=self.device)
+            self._limit_moved = wp.zeros(1, dtype=wp.int32, device=self.device)
+        wp.copy(self._x_mid, state.x)
+        self._limit_moved.zero_()
+
+    def _self_again(self, state, dt, sc) -> None:
+        """The self-collision response on the path the limits' pass after contact moved the
+        cloth along (from positions free of crossings, so its fall-backs end free of them)."""
+        sc.resolve(state, self._x_mid, dt)
+
     def add_correction(self, c) -> None:
         """Append a correction (a limit); an `ObstacleContact` or `CollisionStage` becomes the
         collision stage (`set_collision`), which always runs after the corrections."""
@@ -156,10 +170,20 @@ class Solver:
             c.apply(state, self._x_start, dt)
         if stage is not None:
             stage.resolve(state, self._x_start, dt)
-            for c in self.corrections:  # what friction's response stretched, within contact
-                after = getattr(c, "after_contact", None)
-                if after is not None:
-                    after(state, self._x_start, dt, stage)
+            afters = [c for c in self.corrections if getattr(c, "after_contact", None)]
+            sc = getattr(stage, "self_collision", None) if afters else None
+            if sc is not None:
+                self._self_again_prepare(state)
+            for c in afters:  # what friction's response stretched, within contact
+                ran = c.after_contact(state, self._x_start, dt, stage)
+                if sc is not None and ran and hasattr(c, "moved_into"):
+                    c.moved_into(self._limit_moved)
+            if sc is not None:
+                # the limits' sweeps see obstacles but not the cloth's other layers: a sweep
+                # that moved anything could push the cloth through itself (an irregular sheet
+                # with 0.65 mm edges under PBD's stretch guard: 2-5 crossing pairs from its
+                # first frames), so the self-collision response runs again on their path
+                wp.capture_if(self._limit_moved, self._self_again, state=state, dt=dt, sc=sc)
         launch(common.advance_time_kernel, 1, [state.time, dt], device=self.device)
         return state
 
