@@ -40,7 +40,8 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = ["closest_point_triangle", "point_triangle_closest", "segment_segment_closest",
-           "ccd_vertex_triangle", "ccd_edge_edge", "vt_round_off", "vt_impact", "ee_impact", "CCD_MISS", "CCD_HIT", "CCD_CAPPED"]
+           "ccd_vertex_triangle", "ccd_edge_edge", "vt_round_off", "vt_impact", "ee_impact",
+           "CCD_MISS", "CCD_HIT", "CCD_CAPPED"]
 
 CCD_MISS = wp.constant(0)
 CCD_HIT = wp.constant(1)

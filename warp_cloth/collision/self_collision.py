@@ -181,8 +181,7 @@ def ee_rest_scale(ia: int, ib: int, ic: int, id: int, rest: wp.array(dtype=wp.ve
 @wp.func
 def vt_pair(v: int, t: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
             tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
-            inv_mass: wp.array(dtype=float),
-        rest: wp.array(dtype=wp.vec4), rec: ContactRecord,
+            inv_mass: wp.array(dtype=float), rest: wp.array(dtype=wp.vec4), rec: ContactRecord,
             pairs: wp.array(dtype=wp.vec2i), npairs: wp.array(dtype=int)):
     """Vertex ``v`` against triangle ``t`` (a broad-phase candidate): skipped when ``v`` is one
     of its corners or all four are pinned; with a ``pairs`` buffer the pair is only listed
@@ -222,8 +221,7 @@ def vt_pair(v: int, t: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.v
 @wp.func
 def ee_pair(e: int, f: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
             edges: wp.array2d(dtype=wp.int32), gap: float, sep: float,
-            inv_mass: wp.array(dtype=float),
-        rest: wp.array(dtype=wp.vec4), rec: ContactRecord,
+            inv_mass: wp.array(dtype=float), rest: wp.array(dtype=wp.vec4), rec: ContactRecord,
             pairs: wp.array(dtype=wp.vec2i), npairs: wp.array(dtype=int)):
     """Edge ``e`` against edge ``f > e`` (a candidate): skipped when they share a vertex or all
     four are pinned; listed or tested as `vt_pair`."""
@@ -270,7 +268,7 @@ def edge_box(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
 def self_vt_bvh_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                        tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
                        inv_mass: wp.array(dtype=float),
-        rest: wp.array(dtype=wp.vec4), done: wp.array(dtype=int),
+                       rest: wp.array(dtype=wp.vec4), done: wp.array(dtype=int),
                        active: wp.array(dtype=int), rec: ContactRecord,
                        pairs: wp.array(dtype=wp.vec2i), npairs: wp.array(dtype=int)):
     """Vertex ``v`` against the triangles whose swept box meets its own (BVH); nothing once
@@ -294,7 +292,7 @@ def self_tv_bvh_kernel(vbvh: wp.uint64, lowers: wp.array(dtype=wp.vec3),
                        uppers: wp.array(dtype=wp.vec3), x0: wp.array(dtype=wp.vec3),
                        x1: wp.array(dtype=wp.vec3), tris: wp.array2d(dtype=wp.int32),
                        gap: float, sep: float, inv_mass: wp.array(dtype=float),
-        rest: wp.array(dtype=wp.vec4),
+                       rest: wp.array(dtype=wp.vec4),
                        done: wp.array(dtype=int), active: wp.array(dtype=int),
                        rec: ContactRecord, pairs: wp.array(dtype=wp.vec2i),
                        npairs: wp.array(dtype=int)):
@@ -334,7 +332,7 @@ def self_vt_grid_kernel(grid: wp.uint64, lowers: wp.array(dtype=wp.vec3),
                         x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                         tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
                         inv_mass: wp.array(dtype=float),
-        rest: wp.array(dtype=wp.vec4), done: wp.array(dtype=int),
+                        rest: wp.array(dtype=wp.vec4), done: wp.array(dtype=int),
                         rec: ContactRecord, pairs: wp.array(dtype=wp.vec2i),
                         npairs: wp.array(dtype=int)):
     """Vertex ``v`` against the triangles whose swept box meets its own (hash grid of box
@@ -355,7 +353,7 @@ def self_vt_grid_kernel(grid: wp.uint64, lowers: wp.array(dtype=wp.vec3),
 def self_ee_bvh_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                        edges: wp.array2d(dtype=wp.int32), gap: float, sep: float,
                        inv_mass: wp.array(dtype=float),
-        rest: wp.array(dtype=wp.vec4), done: wp.array(dtype=int),
+                       rest: wp.array(dtype=wp.vec4), done: wp.array(dtype=int),
                        active: wp.array(dtype=int), rec: ContactRecord,
                        pairs: wp.array(dtype=wp.vec2i), npairs: wp.array(dtype=int)):
     """Edge ``e`` against the edges of higher index whose swept box meets its own (BVH);
@@ -385,7 +383,7 @@ def self_ee_grid_kernel(grid: wp.uint64, lowers: wp.array(dtype=wp.vec3),
                         x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                         edges: wp.array2d(dtype=wp.int32), gap: float, sep: float,
                         inv_mass: wp.array(dtype=float),
-        rest: wp.array(dtype=wp.vec4), done: wp.array(dtype=int),
+                        rest: wp.array(dtype=wp.vec4), done: wp.array(dtype=int),
                         rec: ContactRecord, pairs: wp.array(dtype=wp.vec2i),
                         npairs: wp.array(dtype=int)):
     """Edge ``e`` against the edges of higher index whose swept box meets its own (hash grid);
@@ -472,7 +470,7 @@ def clearance_share(d: float, h: float, i0: int, i1: int, i2: int, i3: int,
 @wp.func
 def clearance_vt_pair(v: int, t: int, x: wp.array(dtype=wp.vec3),
                       tris: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
-        rest: wp.array(dtype=wp.vec4),
+                      rest: wp.array(dtype=wp.vec4),
                       h: float, allow: wp.array(dtype=float)):
     ia, ib, ic, ok = vt_ids(v, t, tris, inv_mass)
     if not ok:
@@ -484,7 +482,7 @@ def clearance_vt_pair(v: int, t: int, x: wp.array(dtype=wp.vec3),
 @wp.kernel
 def clearance_vt_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
                         tris: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
-        rest: wp.array(dtype=wp.vec4),
+                        rest: wp.array(dtype=wp.vec4),
                         half: float, h: float, moved: wp.array(dtype=int),
                         allow: wp.array(dtype=float)):
     """Vertex ``v`` against the triangles within ``2 half`` (boxes inflated by ``half`` each):
@@ -505,7 +503,7 @@ def clearance_vt_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
 def clearance_tv_kernel(vbvh: wp.uint64, lowers: wp.array(dtype=wp.vec3),
                         uppers: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3),
                         tris: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
-        rest: wp.array(dtype=wp.vec4),
+                        rest: wp.array(dtype=wp.vec4),
                         h: float, moved: wp.array(dtype=int), allow: wp.array(dtype=float)):
     """Triangle ``t`` with a moved corner (its box inflated by half the clearance, ``lowers`` /
     ``uppers``) against the vertices that did not move within the clearance (the vertices'
@@ -523,7 +521,7 @@ def clearance_tv_kernel(vbvh: wp.uint64, lowers: wp.array(dtype=wp.vec3),
 @wp.func
 def clearance_ee_pair(e: int, f: int, x: wp.array(dtype=wp.vec3),
                       edges: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
-        rest: wp.array(dtype=wp.vec4),
+                      rest: wp.array(dtype=wp.vec4),
                       h: float, allow: wp.array(dtype=float)):
     ia, ib, ic, id, ok = ee_ids(e, f, edges, inv_mass)
     if not ok:
@@ -535,7 +533,7 @@ def clearance_ee_pair(e: int, f: int, x: wp.array(dtype=wp.vec3),
 @wp.kernel
 def clearance_ee_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
                         edges: wp.array2d(dtype=wp.int32), inv_mass: wp.array(dtype=float),
-        rest: wp.array(dtype=wp.vec4),
+                        rest: wp.array(dtype=wp.vec4),
                         lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3),
                         h: float, moved: wp.array(dtype=int), allow: wp.array(dtype=float)):
     """Edge ``e`` against the edges of higher index within reach (`clearance_vt_kernel`); with
