@@ -963,20 +963,27 @@ def test_pairs_close_in_the_rest_shape_keep_half_their_rest_distance():
     sc.resolve(st, wp.array(x0, dtype=wp.vec3, device="cpu"), 1.0 / 600.0)
     assert diagnostics.edge_strains(model, st.positions()).max() < 1e-6
     assert sc.stats["self_fallback_all"] == 0 and sc.stats["self_zones"] == 0
-    pieces = rest_and_pieces(mesh)[:, 3]
+    pieces = rest_and_pieces(mesh)[0][:, 3]
     assert set(pieces) == {0.0}
-    two = rest_and_pieces(type(mesh)(np.concatenate([mesh.vertices, mesh.vertices + 0.002]),
-                                     np.concatenate([mesh.triangles,
-                                                     mesh.triangles + len(mesh.vertices)])))
+    two, _ = rest_and_pieces(type(mesh)(np.concatenate([mesh.vertices, mesh.vertices + 0.002]),
+                                        np.concatenate([mesh.triangles,
+                                                        mesh.triangles + len(mesh.vertices)])))
     assert (two[:len(mesh.vertices), 3] == 0).all() and (two[len(mesh.vertices):, 3] == 1).all()
     # with the thickness: only the vertices of pairs closer than 2 h at rest keep their piece
     # (the others skip the rest distance): here the columns at x = 0.15 and 0.151 and their
     # neighbours' triangles' corners; none on the built-in grids
-    flagged = rest_and_pieces(mesh, 0.005)[:, 3] >= 0
+    rest, share = rest_and_pieces(mesh, 0.005)
+    flagged = rest[:, 3] >= 0
     xs = np.round(mesh.vertices[flagged, 0], 4)
     assert set(xs) <= {0.1, 0.15, 0.151, 0.2} and {0.15, 0.151} <= set(xs)
     assert (sc.rest.numpy()[:, 3] >= 0).sum() == flagged.sum()
-    assert (rest_and_pieces(sheet_model(res=16).mesh, 0.005)[:, 3] == -1).all()
+    # each vertex's least share (the spans' reach scales with it): 0.5 * 1 mm / 5 mm on the
+    # column's edges, 1 where no pair is close
+    on_column = np.isin(np.round(mesh.vertices[:, 0], 4), [0.15, 0.151])
+    np.testing.assert_allclose(share[on_column], 0.1, rtol=1e-3)
+    assert (share[~flagged] == 1.0).all()
+    grid_rest, grid_share = rest_and_pieces(sheet_model(res=16).mesh, 0.005)
+    assert (grid_rest[:, 3] == -1).all() and (grid_share == 1.0).all()
 
 
 @pytest.mark.parametrize("solver_name", ["explicit", "implicit"])
@@ -1042,3 +1049,34 @@ def test_a_limit_pass_after_contact_cannot_push_the_cloth_through_itself(solver_
     x = st.positions()
     assert self_crossings(x, mesh.triangles, mesh.edges) == 0
     assert x[3, 1] > 0.0
+
+
+def test_span_reach_scales_with_the_pairs_share_of_the_thickness():
+    """The spans' reach is a fraction of the thickness (``self_motion``); for a vertex whose
+    pairs keep only a share of it (`rest_scale`: 0.1 across the thin column) the reach is that
+    share of it, 0.125 mm instead of 1.25 mm: a column moving 0.2 mm a step needs a response
+    every step (with the plain reach, only at the frame's end), since its pairs' gap is that
+    share."""
+    from warp_cloth import ClothModel, make_solver
+
+    model = ClothModel(_thin_column_sheet(), gravity=(0.0, 0.0, 0.0), device="cpu")
+    stage = CollisionStage(model, self_collision=True, self_motion=0.25)
+    solver = make_solver("explicit", model, collision=stage)
+    calls = []
+    orig = stage.self_collision.resolve
+
+    def counting(state, x_start, dt, steps=None):
+        calls.append(1 if steps is None else int(steps.numpy()[0]))
+        orig(state, x_start, dt, steps)
+
+    stage.self_collision.resolve = counting
+    dt = 0.25 * solver.stable_dt(model)
+    state = model.state()
+    column = np.isin(np.round(model.mesh.vertices[:, 0], 4), [0.15, 0.151])
+    v = np.zeros((model.num_vertices, 3))
+    v[column, 1] = 2e-4 / dt
+    state.v.assign(v)
+    stage.plan(5)
+    for _ in range(5):
+        solver.step(state, dt)
+    assert calls == [1, 1, 1, 1, 1], calls

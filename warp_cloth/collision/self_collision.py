@@ -43,7 +43,9 @@ conditional (`SelfCollision.resolve`).
    its allowance, and at every frame's end. After each response `SelfCollision.clear` gives
    every vertex an allowance: half the least distance beyond the thickness of the non-adjacent
    pairs it belongs to (vertex-triangle and edge-edge, found within ``clearance`` thicknesses),
-   at least the ``self_motion`` reach and at most ``(clearance - 1.01) / 2`` thicknesses (a
+   at least the ``self_motion`` reach (a fraction of the thickness: of a vertex's least pair
+   share of it, `rest_and_pieces`, where its pairs keep less) and at most
+   ``(clearance - 1.01) / 2`` thicknesses (a
    partial pass, over the pairs of the vertices that moved, when few did). A pair
    whose vertices all stay within their allowances cannot come within the thickness, so a
    cloth clear of itself runs long spans, and the span's detection skips such pairs: only the
@@ -433,7 +435,7 @@ def span_begin_kernel(x: wp.array(dtype=wp.vec3), start: wp.array(dtype=wp.vec3)
 def span_step_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
                      acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int),
                      start: wp.array(dtype=wp.vec3), reach: float,
-                     allow: wp.array(dtype=float), last: int,
+                     reach_share: wp.array(dtype=float), allow: wp.array(dtype=float), last: int,
                      steps: wp.array(dtype=int), flag: wp.array(dtype=int)):
     """One more step in the span: the held contacts' correction applied (`SelfCollision.hold`),
     then the response is due (``flag``) on the frame's last step or once a vertex is farther
@@ -446,7 +448,7 @@ def span_step_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
         if last != 0:
             flag[0] = 1
     d = x[i] - start[i]
-    a = wp.max(reach, allow[i])
+    a = wp.max(reach * reach_share[i], allow[i])
     if wp.dot(d, d) > a * a:
         flag[0] = 1
 
@@ -647,9 +649,10 @@ def step_begin_kernel(done: wp.array(dtype=int), violated: wp.array(dtype=int),
 @wp.kernel
 def rest_close_vt_kernel(bvh: wp.uint64, rest: wp.array(dtype=wp.vec4),
                          tris: wp.array2d(dtype=wp.int32), reach: float,
-                         flag: wp.array(dtype=int)):
-    """Vertex ``v`` against the triangles of its piece within ``reach`` of it in the rest shape
-    (not its own): the four vertices of each such pair flagged."""
+                         flag: wp.array(dtype=int), share: wp.array(dtype=float)):
+    """Vertex ``v`` against the triangles of its piece within ``reach`` (twice the thickness)
+    of it in the rest shape (not its own): the four vertices of each such pair flagged, and
+    their least `rest_scale` kept."""
     v = wp.tid()
     p = rest_point(rest, v)
     c = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
@@ -662,19 +665,24 @@ def rest_close_vt_kernel(bvh: wp.uint64, rest: wp.array(dtype=wp.vec4),
         if ia != v and ib != v and ic != v and rest[v][3] == rest[ia][3]:
             d = vt_distance(p, rest_point(rest, ia), rest_point(rest, ib), rest_point(rest, ic))
             if d < wp.float64(reach):
+                f = rest_scale(d, 0.5 * reach)
                 flag[v] = 1
                 flag[ia] = 1
                 flag[ib] = 1
                 flag[ic] = 1
+                wp.atomic_min(share, v, f)
+                wp.atomic_min(share, ia, f)
+                wp.atomic_min(share, ib, f)
+                wp.atomic_min(share, ic, f)
 
 
 @wp.kernel
 def rest_close_ee_kernel(bvh: wp.uint64, rest: wp.array(dtype=wp.vec4),
                          edges: wp.array2d(dtype=wp.int32), lowers: wp.array(dtype=wp.vec3),
                          uppers: wp.array(dtype=wp.vec3), reach: float,
-                         flag: wp.array(dtype=int)):
+                         flag: wp.array(dtype=int), share: wp.array(dtype=float)):
     """Edge ``e`` against the edges of its piece within ``reach`` in the rest shape sharing no
-    vertex with it: the four vertices of each such pair flagged."""
+    vertex with it: as `rest_close_vt_kernel`."""
     e = wp.tid()
     ia = edges[e, 0]
     ib = edges[e, 1]
@@ -688,19 +696,28 @@ def rest_close_ee_kernel(bvh: wp.uint64, rest: wp.array(dtype=wp.vec4),
                 d = ee_distance(rest_point(rest, ia), rest_point(rest, ib), rest_point(rest, ic),
                                 rest_point(rest, id))
                 if d < wp.float64(reach):
+                    s = rest_scale(d, 0.5 * reach)
                     flag[ia] = 1
                     flag[ib] = 1
                     flag[ic] = 1
                     flag[id] = 1
+                    wp.atomic_min(share, ia, s)
+                    wp.atomic_min(share, ib, s)
+                    wp.atomic_min(share, ic, s)
+                    wp.atomic_min(share, id, s)
 
 
-def rest_and_pieces(mesh, thickness: float = 0.0, device=None) -> np.ndarray:
-    """(N, 4) float32: each vertex's rest position and, as the fourth coordinate, the index of
+def rest_and_pieces(mesh, thickness: float = 0.0, device=None):
+    """``(rest, share)``: ``rest`` (N, 4) float32, each vertex's rest position and, as the
+    fourth coordinate, the index of
     its connected piece (the components of the mesh's edge graph, numbered from 0; float32
     holds them exactly up to 2^24), or -1 for a vertex of no pair of its piece closer than
     ``2 thickness`` in the rest shape (`rest_scale` is 1 for every pair of such a vertex, and
     is not computed: the built-in scenes' grids have no such pair). With ``thickness`` 0 every
-    vertex keeps its piece. The pairs are found once, with two BVHs over the rest shape."""
+    vertex keeps its piece. The pairs are found once, with two BVHs over the rest shape.
+    ``share`` (N,) float32: each vertex's least `rest_scale` over those pairs (1 if none): the
+    spans' reach, a fraction of the thickness, is that fraction of the vertex's pairs' own
+    (`span_step_kernel`)."""
     n = len(mesh.vertices)
     parent = np.arange(n)
 
@@ -722,26 +739,28 @@ def rest_and_pieces(mesh, thickness: float = 0.0, device=None) -> np.ndarray:
     reach = 2.0 * float(thickness)
     tris = np.asarray(mesh.triangles, dtype=np.int32)
     edges = np.asarray(mesh.edges, dtype=np.int32)
+    ones = np.ones(n, dtype=np.float32)
     if reach <= 0.0 or n == 0 or not len(tris):
-        return out
+        return out, ones
     x = np.asarray(mesh.vertices, dtype=np.float32)
     rest = wp.array(out, dtype=wp.vec4, device=device)
     flag = wp.zeros(n, dtype=int, device=device)
+    share = wp.array(ones, dtype=float, device=device)
     t_lo, t_hi = x[tris].min(axis=1), x[tris].max(axis=1)
     tri_bvh = wp.Bvh(wp.array(t_lo, dtype=wp.vec3, device=device),
                      wp.array(t_hi, dtype=wp.vec3, device=device))
     wp.launch(rest_close_vt_kernel, n, [tri_bvh.id, rest, wp.array(tris, dtype=wp.int32,
                                                                      device=device),
-                                        reach, flag], device=device)
+                                        reach, flag, share], device=device)
     if len(edges):
         e_lo = wp.array(x[edges].min(axis=1), dtype=wp.vec3, device=device)
         e_hi = wp.array(x[edges].max(axis=1), dtype=wp.vec3, device=device)
         edge_bvh = wp.Bvh(e_lo, e_hi)
         wp.launch(rest_close_ee_kernel, len(edges),
                   [edge_bvh.id, rest, wp.array(edges, dtype=wp.int32, device=device), e_lo,
-                   e_hi, reach, flag], device=device)
+                   e_hi, reach, flag, share], device=device)
     out[flag.numpy() == 0, 3] = -1.0
-    return out
+    return out, share.numpy()
 
 
 class SelfCollision:
@@ -779,8 +798,10 @@ class SelfCollision:
         n = model.num_vertices
         #: the rest shape and, as the fourth coordinate, each vertex's connected piece: pairs of
         #: one piece that lie close in it keep less than the thickness (`rest_scale`)
-        self.rest = wp.array(rest_and_pieces(model.mesh, self.thickness, d), dtype=wp.vec4,
-                             device=d)
+        rest, share = rest_and_pieces(model.mesh, self.thickness, d)
+        self.rest = wp.array(rest, dtype=wp.vec4, device=d)
+        #: each vertex's least pair share of the thickness: the spans' reach scales with it
+        self._reach_share = wp.array(share, dtype=float, device=d)
         self.capacity = int(capacity or 16 * (n + self.broad.num_edges))
         self.record = make_record(self.capacity, d)
         self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -1041,8 +1062,8 @@ class SelfCollision:
             self._k = 0
         self.hold(state)
         launch(span_step_kernel, len(start), [state.x, state.v, self.acc, self.cnt, start,
-                                              self._reach, self._allow, int(last), steps,
-                                              flag], device=d)
+                                              self._reach, self._reach_share, self._allow,
+                                              int(last), steps, flag], device=d)
         wp.capture_if(flag, self._span_resolve, state=state, dt=dt)
 
     def _span_resolve(self, state, dt):
