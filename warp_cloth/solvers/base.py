@@ -92,11 +92,16 @@ class Solver:
         if self._x_start is None:
             self._x_start = wp.zeros(self.model.num_vertices, dtype=wp.vec3, device=self.device)
 
-    def _self_again_prepare(self, state) -> None:
-        """Before the limits' pass after contact: the positions it starts from, and its flag."""
+    def _self_again_alloc(self) -> None:
+        """The arrays of `_self_again` (when the stage has self-collision and there are
+        corrections: allocated with them, never inside a captured step)."""
         if getattr(self, "_x_mid", None) is None:
             self._x_mid = wp.zeros(self.model.num_vertices, dtype=wp.vec3, device=self.device)
             self._limit_moved = wp.zeros(1, dtype=wp.int32, device=self.device)
+
+    def _self_again_prepare(self, state) -> None:
+        """Before the limits' pass after contact: the positions it starts from, and its flag."""
+        self._self_again_alloc()
         wp.copy(self._x_mid, state.x)
         self._limit_moved.zero_()
 
@@ -118,6 +123,8 @@ class Solver:
         self.corrections.append(c)
         self.capturable = self.capturable and getattr(c, "capturable", True)
         self._need_start()
+        if getattr(self.collision, "self_collision", None) is not None:
+            self._self_again_alloc()
 
     def set_collision(self, collision) -> None:
         """Give the solver its collision stage (one per solver: it owns every obstacle)."""
@@ -127,6 +134,8 @@ class Solver:
         self.collision = _as_stage(self.model, collision)
         self.capturable = self.capturable and self.collision.capturable
         self._need_start()
+        if self.corrections and getattr(self.collision, "self_collision", None) is not None:
+            self._self_again_alloc()
 
     #: True for a solver whose vertex update is a per-vertex Warp function that the collision
     #: stage can run in its far pass (`fused`); such a solver defines ``vertex_update``

@@ -461,6 +461,8 @@ class PositionBased(Solver):
                 self.stretch_guard = StrainLimit(model, 0.0, 1.0 + ms)
                 self.corrections.insert(0, self.stretch_guard)
                 self._need_start()
+                if getattr(self.collision, "self_collision", None) is not None:
+                    self._self_again_alloc()
 
     # ------------------------------------------------------------------ pieces
     @property
