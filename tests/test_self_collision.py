@@ -528,6 +528,11 @@ def _span_stage(motion=0.25, gravity=(0.0, 0.0, 0.0), layers=None):
         _two_sheets(layers, gravity=gravity)
     stage = CollisionStage(model, self_collision=True, self_motion=motion)
     solver = make_solver("explicit", model, collision=stage)
+    return model, stage, solver, _count_responses(stage)
+
+
+def _count_responses(stage):
+    """The steps each self-collision response of ``stage`` spans, appended as they run."""
     calls = []
     orig = stage.self_collision.resolve
 
@@ -536,7 +541,7 @@ def _span_stage(motion=0.25, gravity=(0.0, 0.0, 0.0), layers=None):
         orig(state, x_start, dt, steps)
 
     stage.self_collision.resolve = counting
-    return model, stage, solver, calls
+    return calls
 
 
 def test_self_collision_spans_end_on_frames_and_follow_the_motion():
@@ -1062,14 +1067,7 @@ def test_span_reach_scales_with_the_pairs_share_of_the_thickness():
     model = ClothModel(_thin_column_sheet(), gravity=(0.0, 0.0, 0.0), device="cpu")
     stage = CollisionStage(model, self_collision=True, self_motion=0.25)
     solver = make_solver("explicit", model, collision=stage)
-    calls = []
-    orig = stage.self_collision.resolve
-
-    def counting(state, x_start, dt, steps=None):
-        calls.append(1 if steps is None else int(steps.numpy()[0]))
-        orig(state, x_start, dt, steps)
-
-    stage.self_collision.resolve = counting
+    calls = _count_responses(stage)
     dt = 0.25 * solver.stable_dt(model)
     state = model.state()
     column = np.isin(np.round(model.mesh.vertices[:, 0], 4), [0.15, 0.151])

@@ -646,13 +646,26 @@ def step_begin_kernel(done: wp.array(dtype=int), violated: wp.array(dtype=int),
         flags[2] = 0
 
 
+@wp.func
+def rest_close_mark(i0: int, i1: int, i2: int, i3: int, d: wp.float64, reach: float,
+                    share: wp.array(dtype=float)):
+    # a pair ``d`` apart at rest, closer than ``reach`` (twice the thickness): its vertices'
+    # least `rest_scale`
+    if d < wp.float64(reach):
+        f = rest_scale(d, 0.5 * reach)
+        wp.atomic_min(share, i0, f)
+        wp.atomic_min(share, i1, f)
+        wp.atomic_min(share, i2, f)
+        wp.atomic_min(share, i3, f)
+
+
 @wp.kernel
 def rest_close_vt_kernel(bvh: wp.uint64, rest: wp.array(dtype=wp.vec4),
                          tris: wp.array2d(dtype=wp.int32), reach: float,
-                         flag: wp.array(dtype=int), share: wp.array(dtype=float)):
+                         share: wp.array(dtype=float)):
     """Vertex ``v`` against the triangles of its piece within ``reach`` (twice the thickness)
-    of it in the rest shape (not its own): the four vertices of each such pair flagged, and
-    their least `rest_scale` kept."""
+    of it in the rest shape (not its own): the least `rest_scale` of each such pair's four
+    vertices."""
     v = wp.tid()
     p = rest_point(rest, v)
     c = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
@@ -664,23 +677,14 @@ def rest_close_vt_kernel(bvh: wp.uint64, rest: wp.array(dtype=wp.vec4),
         ic = tris[t, 2]
         if ia != v and ib != v and ic != v and rest[v][3] == rest[ia][3]:
             d = vt_distance(p, rest_point(rest, ia), rest_point(rest, ib), rest_point(rest, ic))
-            if d < wp.float64(reach):
-                f = rest_scale(d, 0.5 * reach)
-                flag[v] = 1
-                flag[ia] = 1
-                flag[ib] = 1
-                flag[ic] = 1
-                wp.atomic_min(share, v, f)
-                wp.atomic_min(share, ia, f)
-                wp.atomic_min(share, ib, f)
-                wp.atomic_min(share, ic, f)
+            rest_close_mark(v, ia, ib, ic, d, reach, share)
 
 
 @wp.kernel
 def rest_close_ee_kernel(bvh: wp.uint64, rest: wp.array(dtype=wp.vec4),
                          edges: wp.array2d(dtype=wp.int32), lowers: wp.array(dtype=wp.vec3),
                          uppers: wp.array(dtype=wp.vec3), reach: float,
-                         flag: wp.array(dtype=int), share: wp.array(dtype=float)):
+                         share: wp.array(dtype=float)):
     """Edge ``e`` against the edges of its piece within ``reach`` in the rest shape sharing no
     vertex with it: as `rest_close_vt_kernel`."""
     e = wp.tid()
@@ -695,16 +699,7 @@ def rest_close_ee_kernel(bvh: wp.uint64, rest: wp.array(dtype=wp.vec4),
             if rest[ia][3] == rest[ic][3]:
                 d = ee_distance(rest_point(rest, ia), rest_point(rest, ib), rest_point(rest, ic),
                                 rest_point(rest, id))
-                if d < wp.float64(reach):
-                    s = rest_scale(d, 0.5 * reach)
-                    flag[ia] = 1
-                    flag[ib] = 1
-                    flag[ic] = 1
-                    flag[id] = 1
-                    wp.atomic_min(share, ia, s)
-                    wp.atomic_min(share, ib, s)
-                    wp.atomic_min(share, ic, s)
-                    wp.atomic_min(share, id, s)
+                rest_close_mark(ia, ib, ic, id, d, reach, share)
 
 
 def rest_and_pieces(mesh, thickness: float = 0.0, device=None):
@@ -744,23 +739,23 @@ def rest_and_pieces(mesh, thickness: float = 0.0, device=None):
         return out, ones
     x = np.asarray(mesh.vertices, dtype=np.float32)
     rest = wp.array(out, dtype=wp.vec4, device=device)
-    flag = wp.zeros(n, dtype=int, device=device)
     share = wp.array(ones, dtype=float, device=device)
     t_lo, t_hi = x[tris].min(axis=1), x[tris].max(axis=1)
     tri_bvh = wp.Bvh(wp.array(t_lo, dtype=wp.vec3, device=device),
                      wp.array(t_hi, dtype=wp.vec3, device=device))
     wp.launch(rest_close_vt_kernel, n, [tri_bvh.id, rest, wp.array(tris, dtype=wp.int32,
                                                                      device=device),
-                                        reach, flag, share], device=device)
+                                        reach, share], device=device)
     if len(edges):
         e_lo = wp.array(x[edges].min(axis=1), dtype=wp.vec3, device=device)
         e_hi = wp.array(x[edges].max(axis=1), dtype=wp.vec3, device=device)
         edge_bvh = wp.Bvh(e_lo, e_hi)
         wp.launch(rest_close_ee_kernel, len(edges),
                   [edge_bvh.id, rest, wp.array(edges, dtype=wp.int32, device=device), e_lo,
-                   e_hi, reach, flag, share], device=device)
-    out[flag.numpy() == 0, 3] = -1.0
-    return out, share.numpy()
+                   e_hi, reach, share], device=device)
+    least = share.numpy()
+    out[least >= 1.0, 3] = -1.0  # no pair closer than twice the thickness
+    return out, least
 
 
 class SelfCollision:
