@@ -1078,3 +1078,39 @@ def test_span_reach_scales_with_the_pairs_share_of_the_thickness():
     for _ in range(5):
         solver.step(state, dt)
     assert calls == [1, 1, 1, 1, 1], calls
+
+
+def test_a_rest_close_pair_is_recorded_where_it_comes_within_its_own_thickness():
+    """A vertex beside the 1 mm column (its pairs across it keep 0.5 mm) sliding 2 cm along it
+    while closing 0.8 mm: detected with the spans' margin it is within the gap from the start,
+    but the entry's closest point is taken where it comes within its own 0.5 mm (z about
+    0.1625), not at the start (z = 0.15), where the pair does not meet."""
+    import warp as wp
+
+    from warp_cloth import ClothModel
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    mesh = _thin_column_sheet()
+    model = ClothModel(mesh, gravity=(0.0, 0.0, 0.0), device="cpu")
+    sc = SelfCollision(model, 0.005)
+    x0 = mesh.vertices.astype(np.float64)
+    v = int(np.flatnonzero(np.isclose(x0[:, 0], 0.15) & np.isclose(x0[:, 2], 0.15))[0])
+    x1 = x0.copy()
+    x1[v] += [0.0008, 0.0, 0.02]
+    sc.record.count.zero_()
+    sc.detect(wp.array(x0, dtype=wp.vec3, device="cpu"), wp.array(x1, dtype=wp.vec3, device="cpu"),
+              0.005 + 2 * 0.00125, sc.record)
+    n = int(sc.record.count.numpy()[0])
+    from warp_cloth.collision.self_collision import KIND_VERTEX_TRIANGLE
+
+    ids, w = sc.record.vertex.numpy()[:n], sc.record.weight.numpy()[:n]
+    kind = sc.record.kind.numpy()[:n]
+    # the vertex against the triangle of the next cell whose edge it slides along (two corners
+    # on x = 0.151, z from 0.15 to 0.2)
+    mine = [k for k in range(n) if kind[k] == KIND_VERTEX_TRIANGLE and ids[k][0] == v
+            and np.isclose(x0[ids[k][1:], 0], 0.151).sum() == 2
+            and x0[ids[k][1:], 2].min() > 0.149]
+    assert mine
+    for k in mine:  # the triangle's point of the entry, at rest
+        z = -(w[k][1:] @ x0[ids[k][1:], 2])
+        assert abs(z - 0.1625) < 2e-3, z

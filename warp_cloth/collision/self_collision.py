@@ -212,6 +212,14 @@ def vt_pair(v: int, t: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.v
                                      wp.float64(shared_gap(gap, sep, share)), CCD_ITERATIONS)
         if s == CCD_MISS:
             return
+        # the margin is many times such a pair's own thickness: it enters the gap long before
+        # it could touch, and the closest points there are not where it meets. When it comes
+        # within its own thickness on the path, the entry is taken at that time instead
+        s2, t2 = ccd_vertex_triangle(d3(a0), d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(a1),
+                                     d3(x1[ia]), d3(x1[ib]), d3(x1[ic]),
+                                     wp.float64(share * sep), CCD_ITERATIONS)
+        if s2 != CCD_MISS:
+            toi = t2
     n, bw, ok = vt_impact(a0, a1, x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], toi)
     if not ok:
         return
@@ -248,6 +256,11 @@ def ee_pair(e: int, f: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.v
                                wp.float64(shared_gap(gap, sep, share)), CCD_ITERATIONS)
         if s == CCD_MISS:
             return
+        s2, t2 = ccd_edge_edge(d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(x0[id]), d3(x1[ia]),
+                               d3(x1[ib]), d3(x1[ic]), d3(x1[id]), wp.float64(share * sep),
+                               CCD_ITERATIONS)
+        if s2 != CCD_MISS:  # at the time it comes within its own thickness (`vt_pair`)
+            toi = t2
     n, s1, t1, ok = ee_impact(x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], x0[id], x1[id], toi)
     if not ok:
         return
