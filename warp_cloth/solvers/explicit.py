@@ -108,11 +108,13 @@ class SymplecticEuler(Solver):
         )
 
     @staticmethod
-    def stiffness_row_sums(model):
+    def stiffness_row_sums(model, springs: bool = True):
         """Per-vertex Gershgorin row sums of the stiffness and damping matrices (N/m, N s/m).
 
         Returns ``(K, C)``, two (N,) arrays: ``K_i = sum_j ||H_ij||`` (3x3 block norms) over every
-        stiff term of the model, ``C_i`` the same for the spring dashpots.
+        stiff term of the model, ``C_i`` the same for the spring dashpots. ``springs=False``
+        leaves the springs and their dashpots out (the force terms only: PBD, whose springs are
+        constraints).
 
         - springs: ``||H_e|| <= k`` (equal at rest), so each spring adds ``2 k`` to both ends;
         - quadratic bending (exact, constant ``Q = w w^T (x) I``): ``|w_i| sum_j |w_j|`` per quad;
@@ -128,7 +130,7 @@ class SymplecticEuler(Solver):
         n = model.num_vertices
         K = np.zeros(n)
         C = np.zeros(n)
-        if model.num_springs:
+        if springs and model.num_springs:
             pairs = np.asarray(model.spring_pairs).reshape(-1, 2)
             k = np.asarray(model.spring_stiffness, dtype=np.float64)
             for col in (0, 1):
