@@ -52,12 +52,13 @@ import warp as wp
 from ..util import launch
 from .broadphase import ClothBroadPhase
 from .geometry import CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, vt_impact
+from .motion import KIND_BOX
 from .record import (KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, record_append,
                      record_threads)
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
-__all__ = ["sharp_features", "FeatureContact"]
+__all__ = ["sharp_features", "box_mesh", "FeatureContact"]
 
 #: advances of the continuous tests before a conservative hit
 CCD_ITERATIONS = 64
@@ -122,6 +123,23 @@ def sharp_features(vertices, triangles, length: float, thickness: float):
     return edges, np.unique(edges)
 
 
+def box_mesh(half_extents):
+    """``(vertices (8, 3), triangles (12, 3))`` of a box with these half extents about the
+    origin, outward winding: a `Box` obstacle's surface in its own frame."""
+    h = np.asarray(half_extents, dtype=np.float64)
+    v = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
+                 dtype=np.float64) * h
+    tris = []
+    for axis in range(3):
+        for side in (0, 1):
+            quad = [i for i in range(8) if (i >> (2 - axis)) & 1 == side]  # 4 corners of a face
+            a, b, c, d = sorted(quad)  # a square's corners in binary order: a-b-d-c around it
+            for t in ((a, b, d), (a, d, c)):
+                n = np.cross(v[t[1]] - v[t[0]], v[t[2]] - v[t[0]])
+                tris.append(t if n[axis] * (1 if side else -1) > 0 else (t[0], t[2], t[1]))
+    return v, np.asarray(tris, dtype=np.int64)
+
+
 def _sharp_tips(v, t, L: float, h: float, open_v) -> np.ndarray:
     """Per vertex: a convex tip that a cloth edge of length ``L`` dips into by more than
     ``1.5 h`` (`sharp_features`); not the vertices of ``open_v`` (on a boundary or
@@ -166,6 +184,49 @@ def feature_world_kernel(local: wp.array(dtype=wp.vec3), pose_of: wp.array(dtype
     p1[i] = wp.transform_point(poses[5 * k + 1], local[i])
 
 
+@wp.func
+def _vt_pair(a0: wp.vec3, a1: wp.vec3, src: int, ia: int, ib: int, ic: int,
+             x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), gap: float, sep: float,
+             mu: float, rec: ContactRecord):
+    """The narrow phase of a sharp vertex's path ``a0 -> a1`` against cloth triangle
+    ``(ia, ib, ic)``: an entry keeping the triangle ``sep`` (the thickness) away from the
+    vertex's end position, on the side the triangle was at the time of impact."""
+    s, toi = ccd_vertex_triangle(d3(a0), d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(a1),
+                                 d3(x1[ia]), d3(x1[ib]), d3(x1[ic]), wp.float64(gap),
+                                 CCD_ITERATIONS)
+    if s != CCD_MISS:
+        # at the time of impact; the triangle moves away from the vertex (-n)
+        n, bw, ok = vt_impact(a0, a1, x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], toi)
+        if ok:
+            n = -n
+            w = wp.vec4(bw[0], bw[1], bw[2], 0.0)
+            # ref: the plane's point at the step's start (offset - n . ref: how far the
+            # obstacle moved it along n in the step; `respond` takes the cloth's approach
+            # relative to it)
+            record_append(rec, KIND_VERTEX_TRIANGLE, wp.vec4i(ia, ib, ic, -1), w, n,
+                          wp.dot(n, a1) + sep, a0 + sep * n, mu, 0.0, src)
+
+
+@wp.func
+def _ee_pair(a0: wp.vec3, b0: wp.vec3, a1: wp.vec3, b1: wp.vec3, src: int, ic: int, id: int,
+             x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), gap: float, sep: float,
+             mu: float, rec: ContactRecord):
+    """The narrow phase of a sharp edge's path against cloth edge ``(ic, id)``: an entry keeping
+    the cloth edge ``sep`` (the thickness) away from the obstacle edge's end position."""
+    s, toi = ccd_edge_edge(d3(a0), d3(b0), d3(x0[ic]), d3(x0[id]), d3(a1), d3(b1),
+                           d3(x1[ic]), d3(x1[id]), wp.float64(gap), CCD_ITERATIONS)
+    if s != CCD_MISS:
+        # at the time of impact; the cloth edge moves away from the obstacle edge (-n)
+        n, fs, ft2, ok = ee_impact(a0, a1, b0, b1, x0[ic], x1[ic], x0[id], x1[id], toi)
+        if ok:
+            n = -n
+            o1 = a1 + fs * (b1 - a1)
+            o0 = a0 + fs * (b0 - a0)
+            w = wp.vec4(1.0 - ft2, ft2, 0.0, 0.0)
+            record_append(rec, KIND_EDGE_EDGE, wp.vec4i(ic, id, -1, -1), w, n,
+                          wp.dot(n, o1) + sep, o0 + sep * n, mu, 0.0, src)
+
+
 @wp.kernel
 def vertex_triangle_kernel(
     bvh: wp.uint64,
@@ -180,9 +241,8 @@ def vertex_triangle_kernel(
     mu_t: wp.array(dtype=float),
     rec: ContactRecord,
 ):
-    """A sharp obstacle vertex against the cloth triangles its path comes within ``gap`` of:
-    an entry keeping the triangle ``sep`` (the thickness) away from the vertex's end position,
-    on the side the triangle was at the time of impact."""
+    """A sharp obstacle vertex against the cloth triangles its path comes within ``gap`` of
+    (`_vt_pair`)."""
     i = wp.tid()
     a0 = p0[i]
     a1 = p1[i]
@@ -190,25 +250,10 @@ def vertex_triangle_kernel(
     hi = wp.max(a0, a1) + wp.vec3(gap)
     q = wp.bvh_query_aabb(bvh, lo, hi)
     t = int(0)
+    src = source[i]
     while wp.bvh_query_next(q, t):
-        ia = tris[t, 0]
-        ib = tris[t, 1]
-        ic = tris[t, 2]
-        s, toi = ccd_vertex_triangle(d3(a0), d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(a1),
-                                     d3(x1[ia]), d3(x1[ib]), d3(x1[ic]), wp.float64(gap),
-                                     CCD_ITERATIONS)
-        if s == CCD_MISS:
-            continue
-        # at the time of impact; the triangle moves away from the vertex (-n)
-        n, bw, ok = vt_impact(a0, a1, x0[ia], x1[ia], x0[ib], x1[ib], x0[ic], x1[ic], toi)
-        if not ok:
-            continue
-        n = -n
-        w = wp.vec4(bw[0], bw[1], bw[2], 0.0)
-        # ref: the plane's point at the step's start (offset - n . ref: how far the obstacle
-        # moved it along n in the step; `respond` takes the cloth's approach relative to it)
-        record_append(rec, KIND_VERTEX_TRIANGLE, wp.vec4i(ia, ib, ic, -1), w, n,
-                      wp.dot(n, a1) + sep, a0 + sep * n, mu_t[source[i]], 0.0, source[i])
+        _vt_pair(a0, a1, src, tris[t, 0], tris[t, 1], tris[t, 2], x0, x1, gap, sep, mu_t[src],
+                 rec)
 
 
 @wp.kernel
@@ -226,8 +271,8 @@ def edge_edge_kernel(
     mu_t: wp.array(dtype=float),
     rec: ContactRecord,
 ):
-    """A sharp obstacle edge against the cloth edges its path comes within ``gap`` of: an entry
-    keeping the cloth edge ``sep`` (the thickness) away from the obstacle edge's end position."""
+    """A sharp obstacle edge against the cloth edges its path comes within ``gap`` of
+    (`_ee_pair`)."""
     k = wp.tid()
     ja = fedges[k, 0]
     jb = fedges[k, 1]
@@ -241,22 +286,8 @@ def edge_edge_kernel(
     e = int(0)
     src = source[ja]
     while wp.bvh_query_next(q, e):
-        ic = edges[e, 0]
-        id = edges[e, 1]
-        s, toi = ccd_edge_edge(d3(a0), d3(b0), d3(x0[ic]), d3(x0[id]), d3(a1), d3(b1),
-                               d3(x1[ic]), d3(x1[id]), wp.float64(gap), CCD_ITERATIONS)
-        if s == CCD_MISS:
-            continue
-        # at the time of impact; the cloth edge moves away from the obstacle edge (-n)
-        n, fs, ft2, ok = ee_impact(a0, a1, b0, b1, x0[ic], x1[ic], x0[id], x1[id], toi)
-        if not ok:
-            continue
-        n = -n
-        o1 = a1 + fs * (b1 - a1)
-        o0 = a0 + fs * (b0 - a0)
-        w = wp.vec4(1.0 - ft2, ft2, 0.0, 0.0)
-        record_append(rec, KIND_EDGE_EDGE, wp.vec4i(ic, id, -1, -1), w, n, wp.dot(n, o1) + sep,
-                      o0 + sep * n, mu_t[src], 0.0, src)
+        _ee_pair(a0, b0, a1, b1, src, edges[e, 0], edges[e, 1], x0, x1, gap, sep, mu_t[src],
+                 rec)
 
 
 #: an entry whose free vertices carry less than this share of its squared weights is held by
@@ -387,10 +418,29 @@ def inelastic_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3
 
 
 @wp.kernel
-def rounds_begin_kernel(flags: wp.array(dtype=int)):
-    """A response starts: run (``flags[0]``), no round taken (``flags[1]``)."""
-    flags[0] = 1
+def position_apply_kernel(x: wp.array(dtype=wp.vec3), acc: wp.array(dtype=wp.vec3),
+                          cnt: wp.array(dtype=int)):
+    """``x += acc / cnt`` (the Jacobi average) and the accumulators cleared; no velocity."""
+    i = wp.tid()
+    c = cnt[i]
+    if c > 0:
+        x[i] = x[i] + acc[i] / float(c)
+        acc[i] = wp.vec3(0.0)
+        cnt[i] = 0
+
+
+@wp.kernel
+def rounds_begin_kernel(flags: wp.array(dtype=int), rec: ContactRecord, first: int,
+                        counters: wp.array(dtype=int)):
+    """A response starts: run (``flags[0]``) if the record has an entry from ``first`` on, no
+    round taken (``flags[1]``); with none, no round (``counters[0]``, the last response's
+    rounds, 0)."""
     flags[1] = 0
+    if wp.min(rec.count[0], rec.vertex.shape[0]) > first:
+        flags[0] = 1
+    else:
+        flags[0] = 0
+        counters[0] = 0
 
 
 @wp.kernel
@@ -438,7 +488,15 @@ class FeatureContact:
         self.rounds = int(rounds)
         self.active = False
         self.num_vertices = self.num_edges = 0
-        if contact is None or not contact.meshes:
+        if contact is None:
+            return
+        # meshes and boxes (a box's edges and corners are as sharp as a mesh's)
+        shapes = [(a, box_mesh(ob.half_extents)) for a, ob in enumerate(contact.analytic)
+                  if ob.kind == KIND_BOX]
+        n_analytic = len(contact.analytic)
+        shapes += [(n_analytic + m, (ob.vertices, ob.triangles))
+                   for m, ob in enumerate(contact.meshes)]
+        if not shapes:
             return
         self.thickness = contact.thickness
         rest = _edge_lengths(model)
@@ -446,17 +504,16 @@ class FeatureContact:
         # more than half the thickness are skipped
         self.length = STRETCH_MARGIN * float(rest.max()) if len(rest) else 0.0
         local, pose_of, src, fedges = [], [], [], []
-        n_analytic = len(contact.analytic)
         base = 0
-        for m, ob in enumerate(contact.meshes):
-            e, vs = sharp_features(ob.vertices, ob.triangles, self.length, self.thickness)
+        for k, (verts, tris) in shapes:
+            e, vs = sharp_features(verts, tris, self.length, self.thickness)
             if len(vs) == 0:
                 continue
-            remap = -np.ones(len(ob.vertices), dtype=np.int64)
+            remap = -np.ones(len(verts), dtype=np.int64)
             remap[vs] = np.arange(len(vs)) + base
-            local.append(ob.vertices[vs])
-            pose_of.append(np.full(len(vs), n_analytic + m))
-            src.append(np.full(len(vs), n_analytic + m))
+            local.append(np.asarray(verts, dtype=np.float64)[vs])
+            pose_of.append(np.full(len(vs), k))
+            src.append(np.full(len(vs), k))
             fedges.append(remap[e])
             base += len(vs)
         self.active = base > 0
@@ -482,6 +539,7 @@ class FeatureContact:
         # obstacle moves
         self.moved = wp.zeros(n if getattr(contact, "moving", False) else 0, dtype=wp.vec3,
                               device=d)
+        self._no_moved = wp.zeros(0, dtype=wp.vec3, device=d)
         self.violated = wp.zeros(2, dtype=int, device=d)  # [violated entries, a pin_held one]
         self.threads = record_threads(n, d)
         self._flags = wp.zeros(2, dtype=int, device=d)
@@ -515,6 +573,17 @@ class FeatureContact:
                    [b.edge_bvh.id, self.p0, self.p1, self.fedges, self.source, x0, x1,
                     b.edges, gap, self.thickness, self.mu_t, record], device=d)
 
+    def project_positions(self, x, record, first: int = 0) -> None:
+        """One Jacobi round of the record's entries from ``first`` on, positions only (inside a
+        position-based solver's iterations, whose velocity update follows the positions)."""
+        if not self.active:
+            return
+        d, m = self.device, self.model
+        launch(jacobi_project_kernel, self.threads,
+               [record, first, x, m.inv_mass, self.acc, self.cnt, self.violated,
+                RESOLVE_TOL * self.thickness, self.threads, self._no_moved], device=d)
+        launch(position_apply_kernel, m.num_vertices, [x, self.acc, self.cnt], device=d)
+
     def respond(self, state, dt: float, record, first: int = 0) -> None:
         """Jacobi rounds over the record's entries from ``first`` on: at least `rounds`, then
         on while one is violated by more than `RESOLVE_TOL` thicknesses, up to `MAX_ROUNDS`
@@ -522,7 +591,8 @@ class FeatureContact:
         if not self.active:
             return
         self.violated.zero_()
-        launch(rounds_begin_kernel, 1, [self._flags], device=self.device)
+        launch(rounds_begin_kernel, 1, [self._flags, record, first, self.counters],
+               device=self.device)
         wp.capture_while(self._flags[0:1], self._round, state=state, dt=dt, record=record,
                          first=first)
 

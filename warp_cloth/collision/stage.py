@@ -305,12 +305,23 @@ class CollisionStage:
 
     # position-based iterations
     def begin_iterations(self, x, x_start, dt: float, time=None) -> None:
+        """Before a position-based solver's iterations (``x``: its prediction): the vertex
+        contacts' planes, and the sharp features' entries of the predicted paths (with the
+        solve's margin), which `project_positions` then projects in every iteration: kept out
+        of the iterations, the features' response after the step and the iterations' pull
+        undid each other and PBD's velocity update gained energy from it (a 14 x 14 sheet
+        sliding off a table's edge: 2.7e-2 J in a frame)."""
         if self.contact is not None:
             self.contact.begin_iterations(x, x_start, dt, time)
+            if self.pair_record is not None:
+                self.pair_record.count.zero_()
+                self.features.detect(x_start, x, self.solve_margin, self.pair_record)
 
     def project_positions(self, x, x_start, dt: float, time=None) -> None:
         if self.contact is not None:
             self.contact.project_positions(x, x_start, dt, time)
+            if self.pair_record is not None:
+                self.features.project_positions(x, self.pair_record)
 
     # a solver's vertex update fused with the far tests
     @property
