@@ -147,3 +147,47 @@ def test_usd_round_trip(tmp_path):
     r = TriMesh.from_usd(tmp_path / "quad.usda")
     assert r.triangles.tolist() == [[0, 1, 2], [0, 2, 3]]
     assert np.allclose(r.vertices[:, 1], [2, 2, 3, 3])
+
+
+def _two_patches(gap=0.0, jitter=0.0):
+    a = TriMesh.grid(2, 2, size=1.0, plane="xz")
+    b = TriMesh.grid(2, 2, size=1.0, plane="xz", origin=(1.0 + gap, 0.0, 0.0))
+    v = np.concatenate([a.vertices, b.vertices])
+    v[9] += jitter  # b's first vertex, on the shared border with a's vertex 2
+    return TriMesh(v, np.concatenate([a.triangles, b.triangles + 9]))
+
+
+def test_coincident_vertices_and_weld():
+    """Two 2x2 patches whose shared border is written twice (vertices 2, 5, 8 of the first at
+    the positions of 9, 12, 15 of the second): found exactly or within a tolerance, merged by
+    `weld` into one sheet whose triangles now share the border (its edges are no longer two)."""
+    m = _two_patches()
+    assert m.coincident_vertices().tolist() == [[2, 9], [5, 12], [8, 15]]
+    w, index = m.weld()
+    assert w.num_vertices == 15 and len(w.edges) == len(m.edges) - 2
+    assert index[9] == index[2] and index[12] == index[5] and index[15] == index[8]
+    assert np.allclose(w.vertices[index], m.vertices)  # every old vertex maps to its position
+    # one 4 x 2-cell sheet: no seam left in its interior (each patch had 8 boundary edges)
+    assert len(m.boundary_edges) == 16 and len(w.boundary_edges) == 12
+    near = _two_patches(jitter=3e-7)
+    assert near.coincident_vertices().tolist() == [[5, 12], [8, 15]]
+    assert near.coincident_vertices(1e-6).tolist() == [[2, 9], [5, 12], [8, 15]]
+    assert near.coincident_vertices(1e-7).tolist() == [[5, 12], [8, 15]]
+    assert len(_two_patches(gap=5e-4).coincident_vertices(1e-4)) == 0
+    assert len(TriMesh.grid(8, 8).coincident_vertices(1e-3)) == 0
+    with pytest.raises(ValueError, match="tolerance"):
+        m.coincident_vertices(-1.0)
+
+
+def test_weld_refuses_what_it_would_collapse(tmp_path):
+    # a triangle whose two vertices coincide cannot be welded (validation names it) ...
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1e-9, 0], [2, 0, 0]], dtype=float)
+    m = TriMesh(v, np.array([[0, 1, 2], [1, 4, 3]]))
+    with pytest.raises(ValueError, match="triangle"):
+        m.weld(1e-6)
+    # ... and an OBJ with the seam written twice loads welded on request
+    p = tmp_path / "seam.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 0 1\nv 1 0 0\nv 1 0 1\nv 0 0 1\nf 1 2 3\nf 4 5 6\n")
+    assert TriMesh.from_obj(p).num_vertices == 6
+    w = TriMesh.from_obj(p, weld=True)
+    assert w.num_vertices == 4 and len(w.edges) == 5

@@ -1114,3 +1114,49 @@ def test_a_rest_close_pair_is_recorded_where_it_comes_within_its_own_thickness()
     for k in mine:  # the triangle's point of the entry, at rest
         z = -(w[k][1:] @ x0[ids[k][1:], 2])
         assert abs(z - 0.1625) < 2e-3, z
+
+
+def test_a_seam_written_twice_is_refused_and_welded_falls():
+    """A sheet of two patches whose shared border is written twice: the coincident vertices
+    are separate parts of the cloth that start at one point, inside every gap, and every step
+    ended in the whole-cloth return (the sheet hung frozen at its start, every solver). Refused,
+    naming the vertices; welded, the sheet falls as one."""
+    from warp_cloth import ClothModel, Scene, TriMesh, make_solver
+
+    a = TriMesh.grid(4, 8, size=(0.5, 1.0), plane="xz", origin=(-0.5, 0.9, -0.5))
+    b = TriMesh.grid(4, 8, size=(0.5, 1.0), plane="xz", origin=(0.0, 0.9, -0.5))
+    seam = TriMesh(np.vstack([a.vertices, b.vertices]),
+                   np.vstack([a.triangles, b.triangles + len(a.vertices)]))
+    with pytest.raises(ValueError, match=r"vertices 4 and 45 are 0 m apart .* weld"):
+        CollisionStage(ClothModel(seam), [], thickness=0.005, self_collision=True)
+    from warp_cloth.collision import Plane
+
+    CollisionStage(ClothModel(seam), [Plane()], thickness=0.005)  # no self-collision: 2 pieces
+    model = ClothModel(seam.weld()[0], density=0.15)
+    stage = CollisionStage(model, [], thickness=0.005, self_collision=True)
+    scene = Scene(model, make_solver("explicit", model, collision=stage), fps=60, frames=20)
+    stats = scene.run(None, quiet=True, energy=False)
+    assert stats.min_height < 0.45  # free fall over 19 frames: 0.9 - 0.49 m
+    assert stage.self_collision.stats["self_fallback_all_total"] == 0
+
+
+def test_a_start_that_passes_through_itself_is_refused_before_writing(tmp_path):
+    """Two sheets crossing at the start: self-collision keeps a cloth free of itself, it cannot
+    make one (each step returned the cloth to its start: frozen, crossed, in every frame).
+    `Scene.run` refuses it, naming a crossing edge, before the output exists."""
+    from warp_cloth import ClothModel, Scene, TriMesh, make_solver
+
+    a = TriMesh.grid(4, 4, size=0.4, plane="xz", origin=(-0.2, 0.5, -0.2))
+    b = TriMesh.grid(4, 4, size=0.4, plane="xy", origin=(-0.2, 0.3, 0.02))
+    mesh = TriMesh(np.vstack([a.vertices, b.vertices]),
+                   np.vstack([a.triangles, b.triangles + len(a.vertices)]))
+    model = ClothModel(mesh, density=0.15)
+    assert self_crossings(mesh.vertices, mesh.triangles, mesh.edges) > 0
+    stage = CollisionStage(model, [], thickness=0.005, self_collision=True)
+    scene = Scene(model, make_solver("explicit", model, collision=stage), fps=60, frames=3)
+    out = tmp_path / "crossed.usd"
+    with pytest.raises(ValueError, match=r"passes through itself at the start .* vertices \d+-\d+"):
+        scene.run(out, quiet=True)
+    assert not out.exists()
+    plain = Scene(model, make_solver("explicit", model), fps=60, frames=3)  # no self-collision
+    assert plain.run(None, quiet=True, energy=False).frames == 3

@@ -322,6 +322,53 @@ class TriMesh:
         """Largest side of the axis-aligned bounding box (m); the 'cloth size' of error metrics."""
         return float(np.ptp(self.vertices, axis=0).max())
 
+    def coincident_vertices(self, tolerance: float = 0.0) -> np.ndarray:
+        """(K, 2) pairs ``i < j`` of distinct vertices at most ``tolerance`` metres apart
+        (``0``: at the same position), each vertex paired with the lowest index of its group:
+        a seam written twice, as some exporters split vertices by normal or texture
+        coordinate. Such vertices are separate pieces of cloth that touch."""
+        tol = float(tolerance)
+        if not (math.isfinite(tol) and tol >= 0.0):
+            raise ValueError(f"{self.name}: tolerance must be >= 0 metres, got {tolerance!r}")
+        v = self.vertices
+        if tol == 0.0:
+            _, first, inverse = np.unique(v, axis=0, return_index=True, return_inverse=True)
+            rep = first[inverse.reshape(-1)]
+        else:  # the pairs within tol (a hash grid), then their groups (union-find on the host)
+            from .collision.check import close_vertex_pairs
+
+            parent = np.arange(len(v))
+
+            def root(i):
+                while parent[i] != i:
+                    parent[i] = parent[parent[i]]
+                    i = parent[i]
+                return i
+
+            for i, j in close_vertex_pairs(v, tol):
+                ri, rj = root(int(i)), root(int(j))
+                if ri != rj:
+                    parent[max(ri, rj)] = min(ri, rj)
+            rep = np.array([root(i) for i in range(len(v))])
+        j = np.flatnonzero(rep != np.arange(len(v)))
+        return np.stack([rep[j], j], axis=1).astype(np.int64).reshape(-1, 2)
+
+    def weld(self, tolerance: float = 0.0):
+        """``(mesh, index)``: this mesh with every group of `coincident_vertices` (within
+        ``tolerance`` m) merged into its lowest-indexed vertex, and ``index`` (N,) the new
+        index of each old vertex (pins and per-vertex data map through it). Raises `ValueError`
+        (naming them) if merging collapses a triangle or makes two triangles the same, as
+        validation does for any mesh."""
+        pairs = self.coincident_vertices(tolerance)
+        rep = np.arange(self.num_vertices)
+        rep[pairs[:, 1]] = pairs[:, 0]
+        keep = rep == np.arange(self.num_vertices)
+        new = np.cumsum(keep) - 1
+        index = new[rep]
+        mesh = TriMesh(self.vertices[keep], index[self.triangles], name=self.name,
+                       up_axis=self.up_axis)
+        return mesh, index
+
     # ------------------------------------------------------------------ generators
     @classmethod
     def grid(
@@ -380,7 +427,7 @@ class TriMesh:
     # ------------------------------------------------------------------ loaders
     @classmethod
     def from_obj(cls, path: str | os.PathLike, name: str | None = None, *, scale: float = 1.0,
-                 up_axis: str = "Y") -> "TriMesh":
+                 up_axis: str = "Y", weld: bool = False) -> "TriMesh":
         """Load a Wavefront OBJ file: ``v`` lines and ``f`` lines (``i``, ``i/t``, ``i//n``,
         ``i/t/n``, negative = relative indices). Quads and polygons are fan-triangulated; other
         statements are ignored.
@@ -388,7 +435,8 @@ class TriMesh:
         OBJ files carry no unit or up axis: ``scale`` (metres per file unit, e.g. 0.01 for a file
         in centimetres) multiplies every coordinate, and ``up_axis`` (``"Y"``, the OBJ
         convention, or ``"Z"``) says which axis is up in the file; it becomes the mesh's
-        `up_axis` (coordinates are not rotated).
+        `up_axis` (coordinates are not rotated). ``weld=True`` merges vertices written twice
+        at one position (`weld`; some exporters split a seam so), which self-collision needs.
 
         Raises:
             ValueError: naming the file and line of a malformed or undecodable line, an index out
@@ -441,7 +489,8 @@ class TriMesh:
         if not verts:
             raise ValueError(f"{path}: no vertices found")
         v = np.asarray(verts, dtype=np.float64) * scale
-        return cls(v, np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=name, up_axis=up_axis)
+        mesh = cls(v, np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=name, up_axis=up_axis)
+        return mesh.weld()[0] if weld else mesh
 
     def to_obj(self, path: str | os.PathLike) -> None:
         """Write the mesh as a Wavefront OBJ file."""

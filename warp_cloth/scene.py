@@ -82,6 +82,23 @@ class _Progress:
         sys.stderr.flush()
 
 
+def _check_start(model, state) -> None:
+    """`ValueError` if the cloth at ``state`` passes through itself (`Scene.run`)."""
+    from .collision.check import SelfIntersectionChecker
+
+    checker = SelfIntersectionChecker(model.mesh.triangles, model.mesh.edges, model.num_vertices,
+                                      device=model.device)
+    k = checker(state.x)
+    if k:
+        e = int(np.flatnonzero(checker.per_edge.numpy())[0])
+        a, b = (int(c) for c in model.mesh.edges[e])
+        raise ValueError(
+            f"{model.mesh.name}: the cloth passes through itself at the start ({k} crossing "
+            f"(edge, triangle) pairs; the first edge: vertices {a}-{b}), and self-collision "
+            "keeps a cloth that starts free of itself so: start it apart, or turn "
+            "self-collision off")
+
+
 class Scene:
     """A runnable scene.
 
@@ -169,13 +186,18 @@ class Scene:
 
         Raises `SimulationDiverged` when a frame has a non-finite position or an edge strain above
         ``strain_bound``; the USD file then holds the frames before it. ``on_frame(frame, state)``
-        is called after each frame is checked (for custom recording).
+        is called after each frame is checked (for custom recording). With self-collision, a
+        cloth that passes through itself at the start raises `ValueError` (naming an edge and
+        a triangle) before anything is written: self-collision keeps an intersection-free cloth
+        so, and cannot make one (such a start held every step at its start: a frozen cloth).
         """
         from .usd import UsdWriter
 
         t_start = _time.perf_counter()
         self.reset()
         state, solver, model = self.state, self.solver, self.model
+        if getattr(getattr(solver, "collision", None), "self_collision", None) is not None:
+            _check_start(model, state)
         meter = Meter(model)
         if progress is None:
             progress = (not quiet) and sys.stderr.isatty()

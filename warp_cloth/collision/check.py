@@ -117,6 +117,50 @@ def self_crossing_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
         wp.atomic_add(count, 0, n)
 
 
+@wp.kernel
+def close_pairs_kernel(grid: wp.uint64, x: wp.array(dtype=wp.vec3d), xf: wp.array(dtype=wp.vec3),
+                       tol: wp.float64, radius: float, count: wp.array(dtype=int),
+                       pairs: wp.array2d(dtype=int)):
+    """Vertex ``i`` with every lower-indexed vertex within ``tol`` (float64 distance; the
+    float32 grid is queried with a padded ``radius``)."""
+    i = wp.tid()
+    q = wp.hash_grid_query(grid, xf[i], radius)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j < i and wp.length(x[i] - x[j]) <= tol:
+            k = wp.atomic_add(count, 0, 1)
+            if k < pairs.shape[0]:
+                pairs[k, 0] = j
+                pairs[k, 1] = i
+
+
+def close_vertex_pairs(vertices, tolerance: float, device="cpu") -> np.ndarray:
+    """(K, 2) pairs ``j < i`` of points at most ``tolerance`` apart (a `wp.HashGrid` of cells
+    the size of the query radius; distances in float64)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    if len(v) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    tol = float(tolerance)
+    # float32 rounding of the grid's points: pad the radius by it
+    radius = tol + 4e-7 * max(1.0, float(np.abs(v).max()))
+    lo = v.min(axis=0)
+    xf = wp.array((v - lo).astype(np.float32), dtype=wp.vec3, device=device)
+    xd = wp.array(v, dtype=wp.vec3d, device=device)
+    dims = np.clip(np.ceil(np.ptp(v, axis=0) / radius), 1, 128).astype(int)
+    grid = wp.HashGrid(int(dims[0]), int(dims[1]), int(dims[2]), device=device)
+    grid.build(xf, radius)
+    cap = max(16, len(v))
+    while True:
+        count = wp.zeros(1, dtype=int, device=device)
+        pairs = wp.zeros((cap, 2), dtype=int, device=device)
+        launch(close_pairs_kernel, len(v), [grid.id, xd, xf, tol, radius, count, pairs],
+               device=device)
+        n = int(count.numpy()[0])
+        if n <= cap:
+            return pairs.numpy()[:n].astype(np.int64)
+        cap = n
+
+
 class SelfIntersectionChecker:
     """Counts the (edge, triangle) pairs of a cloth mesh whose edge passes through the triangle,
     for pairs that share no vertex (a surface that passes through itself has such pairs; one

@@ -96,6 +96,9 @@ ALLOWANCE_STEPS = 8
 CLEAR_FULL_FRACTION = 0.25
 #: the fail-safe acts on paths that come this close (a fraction of the thickness)
 FAILSAFE_GAP = 0.05
+#: vertices of the rest mesh closer than this share of the thickness (and not the same vertex)
+#: are refused: a seam written twice (`SelfCollision`); they would start inside every gap
+COINCIDENT = 1.0e-3
 #: a pair closer than twice the thickness in the rest shape keeps this share of its rest
 #: distance instead of the thickness (`rest_scale`)
 REST_SHARE = wp.constant(0.5)
@@ -802,6 +805,16 @@ class SelfCollision:
         self.rounds, self.iterations = int(rounds), int(iterations)
         if self.rounds < 1 or self.iterations < 1:
             raise ValueError("self-collision rounds and iterations must be >= 1")
+        same = model.mesh.coincident_vertices(COINCIDENT * self.thickness)
+        if len(same):
+            i, j = (int(c) for c in same[0])
+            gap = float(np.linalg.norm(model.mesh.vertices[i] - model.mesh.vertices[j]))
+            raise ValueError(
+                f"{model.mesh.name}: vertices {i} and {j} are {gap:.3g} m apart but not joined "
+                f"({len(same)} such vertices; a seam written twice?): self-collision keeps "
+                f"separate parts of the cloth {self.thickness:g} m apart and cannot hold ones that "
+                "start at one point. Weld them: mesh, index = mesh.weld() (or "
+                "TriMesh.from_obj(path, weld=True)), or move them apart")
         self.broad = ClothBroadPhase(model, broadphase)
         n = model.num_vertices
         #: the rest shape and, as the fourth coordinate, each vertex's connected piece: pairs of
