@@ -880,3 +880,54 @@ def test_fast_box_does_not_cut_through_a_curtain(solver_name):
     stats = scene.run(None, quiet=True, energy=False, on_frame=on_frame)
     assert max(inside) == 0, inside
     assert stats.max_strain < 0.25
+
+
+def test_feature_pass_fat_boxes_find_what_fresh_boxes_find(monkeypatch):
+    """The feature pass keeps the cloth's boxes widened by `FAT_SLACK` thicknesses and refits
+    its BVHs only when a path leaves its box: on a sequence of small moves (refits skipped) and
+    jumps (refits forced) near a box's edges, it records exactly the entries of boxes rebuilt
+    around each step's paths (`FAT_SLACK = 0`: a refit every step)."""
+    import warp_cloth.collision.features as F
+    from warp_cloth import ClothModel, TriMesh
+    from warp_cloth.collision import Box, CollisionStage
+    from warp_cloth.collision.record import make_record
+
+    g = TriMesh.grid(10, 10, size=0.6, plane="xz", origin=(-0.3, 0.204, -0.3))
+    model = ClothModel(g)
+    box = Box((0.2, 0.2, 0.2), (0.05, 0.0, 0.05))
+    fat = F.FAT_SLACK
+    runs = {}
+    for slack in (fat, 0.0):
+        monkeypatch.setattr(F, "FAT_SLACK", slack)
+        st = CollisionStage(model, [box], thickness=0.005)
+        fc = st.features
+        assert fc.active and fc.num_edges == 12
+        refit, count = fc._refit, [0]
+
+        def counted(x0, x1, refit=refit, count=count):
+            count[0] += 1
+            refit(x0, x1)
+
+        fc._refit = counted
+        runs[slack] = (fc, make_record(4096, "cpu"), count)
+    rng = np.random.default_rng(7)
+    x = g.vertices.copy()
+    found = 0
+    for step in range(12):
+        jump = 0.02 if step in (5, 9) else 2e-4  # 2 cm moves leave every box
+        x1 = x + rng.uniform(-jump, jump, x.shape)
+        x1[:, 1] -= 3e-4  # settling onto the box top and over its edges
+        xs, xe = wp.array(x, dtype=wp.vec3), wp.array(x1, dtype=wp.vec3)
+        got = {}
+        for slack, (fc, rec, _) in runs.items():
+            monkeypatch.setattr(F, "FAT_SLACK", slack)
+            rec.count.zero_()
+            fc.detect(xs, xe, 0.0, rec)
+            n = int(rec.count.numpy()[0])
+            got[slack] = sorted(map(tuple, rec.vertex.numpy()[:n].tolist()))
+        assert got[fat] == got[0.0], step
+        found += len(got[0.0]) > 0
+        x = x1
+    assert found >= 8  # the paths do reach the box's features
+    assert runs[0.0][2][0] == 12  # fresh boxes: a refit every step
+    assert runs[fat][2][0] <= 5  # fat ones: the first step, the jumps, and few others
