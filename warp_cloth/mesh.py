@@ -356,7 +356,8 @@ class TriMesh:
     def weld(self, tolerance: float = 0.0):
         """``(mesh, index)``: this mesh with every group of `coincident_vertices` (within
         ``tolerance`` m) merged into its lowest-indexed vertex, and ``index`` (N,) the new
-        index of each old vertex (pins and per-vertex data map through it). Raises `ValueError`
+        index of each old vertex (per-vertex data map through it; pins on both copies of a
+        seam become one: ``np.unique(index[pins])``). Raises `ValueError`
         (naming them) if merging collapses a triangle or makes two triangles the same, as
         validation does for any mesh."""
         pairs = self.coincident_vertices(tolerance)
@@ -427,7 +428,7 @@ class TriMesh:
     # ------------------------------------------------------------------ loaders
     @classmethod
     def from_obj(cls, path: str | os.PathLike, name: str | None = None, *, scale: float = 1.0,
-                 up_axis: str = "Y", weld: bool = False) -> "TriMesh":
+                 up_axis: str = "Y", weld=False) -> "TriMesh":
         """Load a Wavefront OBJ file: ``v`` lines and ``f`` lines (``i``, ``i/t``, ``i//n``,
         ``i/t/n``, negative = relative indices). Quads and polygons are fan-triangulated; other
         statements are ignored.
@@ -436,7 +437,8 @@ class TriMesh:
         in centimetres) multiplies every coordinate, and ``up_axis`` (``"Y"``, the OBJ
         convention, or ``"Z"``) says which axis is up in the file; it becomes the mesh's
         `up_axis` (coordinates are not rotated). ``weld=True`` merges vertices written twice
-        at one position (`weld`; some exporters split a seam so), which self-collision needs.
+        at one position (`weld`; some exporters split a seam so), which self-collision needs; a
+        number merges those within that many metres (after ``scale``).
 
         Raises:
             ValueError: naming the file and line of a malformed or undecodable line, an index out
@@ -490,7 +492,10 @@ class TriMesh:
             raise ValueError(f"{path}: no vertices found")
         v = np.asarray(verts, dtype=np.float64) * scale
         mesh = cls(v, np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=name, up_axis=up_axis)
-        return mesh.weld()[0] if weld else mesh
+        if weld is False or weld is None:
+            return mesh
+        tol = 0.0 if weld is True else float(weld)
+        return mesh.weld(tol)[0]
 
     def to_obj(self, path: str | os.PathLike) -> None:
         """Write the mesh as a Wavefront OBJ file."""

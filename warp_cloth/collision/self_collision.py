@@ -718,17 +718,9 @@ def rest_close_ee_kernel(bvh: wp.uint64, rest: wp.array(dtype=wp.vec4),
                 rest_close_mark(ia, ib, ic, id, d, reach, share)
 
 
-def rest_and_pieces(mesh, thickness: float = 0.0, device=None):
-    """``(rest, share)``: ``rest`` (N, 4) float32, each vertex's rest position and, as the
-    fourth coordinate, the index of
-    its connected piece (the components of the mesh's edge graph, numbered from 0; float32
-    holds them exactly up to 2^24), or -1 for a vertex of no pair of its piece closer than
-    ``2 thickness`` in the rest shape (`rest_scale` is 1 for every pair of such a vertex, and
-    is not computed: the built-in scenes' grids have no such pair). With ``thickness`` 0 every
-    vertex keeps its piece. The pairs are found once, with two BVHs over the rest shape.
-    ``share`` (N,) float32: each vertex's least `rest_scale` over those pairs (1 if none): the
-    spans' reach, a fraction of the thickness, is that fraction of the vertex's pairs' own
-    (`span_step_kernel`)."""
+def mesh_pieces(mesh) -> np.ndarray:
+    """(N,) each vertex's connected piece (the components of the mesh's edge graph, numbered
+    from 0 in the order of their lowest vertex)."""
     n = len(mesh.vertices)
     parent = np.arange(n)
 
@@ -742,8 +734,58 @@ def rest_and_pieces(mesh, thickness: float = 0.0, device=None):
         ra, rb = root(int(a)), root(int(b))
         if ra != rb:
             parent[max(ra, rb)] = min(ra, rb)
-    roots = np.array([root(i) for i in range(n)])
-    _, piece = np.unique(roots, return_inverse=True)
+    roots = np.array([root(i) for i in range(n)], dtype=np.int64)
+    return np.unique(roots, return_inverse=True)[1].reshape(-1)
+
+
+def check_start_apart(mesh, thickness: float) -> None:
+    """`ValueError` naming them if the rest mesh has vertices closer than `COINCIDENT`
+    thicknesses (a seam written twice: weld it), or vertices of separate pieces closer than
+    the thickness (`SelfCollision`)."""
+    h = float(thickness)
+    x = np.asarray(mesh.vertices, dtype=np.float64)
+    same = mesh.coincident_vertices(COINCIDENT * h)
+    if len(same):
+        i, j = (int(c) for c in same[0])
+        gap = float(np.linalg.norm(x[i] - x[j]))
+        raise ValueError(
+            f"{mesh.name}: vertices {i} and {j} are {gap:.3g} m apart but not joined "
+            f"({len(same)} such vertices; a seam written twice?): self-collision keeps separate "
+            f"parts of the cloth {h:g} m apart and cannot hold ones that start at one point. "
+            f"Weld them: mesh, index = mesh.weld({max(2.0 * gap, 1e-9):.2g}) (or "
+            f"TriMesh.from_obj(path, weld={max(2.0 * gap, 1e-9):.2g})), or move them apart")
+    from .check import close_vertex_pairs
+
+    piece = mesh_pieces(mesh)
+    if piece.max(initial=0) == 0:
+        return
+    pairs = close_vertex_pairs(x, h)
+    cross = pairs[piece[pairs[:, 0]] != piece[pairs[:, 1]]] if len(pairs) else pairs
+    if len(cross):
+        d = np.linalg.norm(x[cross[:, 0]] - x[cross[:, 1]], axis=1)
+        k = int(np.argmin(d))
+        i, j = (int(c) for c in cross[k])
+        raise ValueError(
+            f"{mesh.name}: vertices {i} and {j} of separate pieces of the cloth start "
+            f"{d[k]:.3g} m apart ({len(cross)} such pairs), closer than the self-collision "
+            f"thickness {h:g} m, which would throw them apart in the first step: start them at "
+            f"least the thickness apart (or a smaller thickness), or, if they are one seam, weld "
+            f"them: mesh, index = mesh.weld({1.5 * float(d.max()):.3g})")
+
+
+def rest_and_pieces(mesh, thickness: float = 0.0, device=None):
+    """``(rest, share)``: ``rest`` (N, 4) float32, each vertex's rest position and, as the
+    fourth coordinate, the index of
+    its connected piece (the components of the mesh's edge graph, numbered from 0; float32
+    holds them exactly up to 2^24), or -1 for a vertex of no pair of its piece closer than
+    ``2 thickness`` in the rest shape (`rest_scale` is 1 for every pair of such a vertex, and
+    is not computed: the built-in scenes' grids have no such pair). With ``thickness`` 0 every
+    vertex keeps its piece. The pairs are found once, with two BVHs over the rest shape.
+    ``share`` (N,) float32: each vertex's least `rest_scale` over those pairs (1 if none): the
+    spans' reach, a fraction of the thickness, is that fraction of the vertex's pairs' own
+    (`span_step_kernel`)."""
+    n = len(mesh.vertices)
+    piece = mesh_pieces(mesh)
     out = np.zeros((n, 4), dtype=np.float32)
     out[:, :3] = mesh.vertices
     out[:, 3] = piece
@@ -805,16 +847,7 @@ class SelfCollision:
         self.rounds, self.iterations = int(rounds), int(iterations)
         if self.rounds < 1 or self.iterations < 1:
             raise ValueError("self-collision rounds and iterations must be >= 1")
-        same = model.mesh.coincident_vertices(COINCIDENT * self.thickness)
-        if len(same):
-            i, j = (int(c) for c in same[0])
-            gap = float(np.linalg.norm(model.mesh.vertices[i] - model.mesh.vertices[j]))
-            raise ValueError(
-                f"{model.mesh.name}: vertices {i} and {j} are {gap:.3g} m apart but not joined "
-                f"({len(same)} such vertices; a seam written twice?): self-collision keeps "
-                f"separate parts of the cloth {self.thickness:g} m apart and cannot hold ones that "
-                "start at one point. Weld them: mesh, index = mesh.weld() (or "
-                "TriMesh.from_obj(path, weld=True)), or move them apart")
+        check_start_apart(model.mesh, self.thickness)
         self.broad = ClothBroadPhase(model, broadphase)
         n = model.num_vertices
         #: the rest shape and, as the fourth coordinate, each vertex's connected piece: pairs of
