@@ -51,7 +51,8 @@ import warp as wp
 
 from ..util import launch
 from .broadphase import ClothBroadPhase
-from .geometry import CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, vt_impact
+from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, f3,
+                       segment_segment_closest, vt_impact)
 from .motion import KIND_BOX
 from .record import (KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, record_append,
                      record_threads)
@@ -125,6 +126,25 @@ def sharp_features(vertices, triangles, length: float, thickness: float):
             sharp.append((a, b))
     edges = np.asarray(sharp, dtype=np.int64).reshape(-1, 2)
     return edges, np.unique(edges)
+
+
+def edge_face_normals(vertices, triangles, edges) -> np.ndarray:
+    """(E, 2, 3): the unit normals of the two triangles at each of ``edges`` (zeros for an
+    edge with another number of triangles: a rim or a non-manifold edge)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    faces = {}
+    for f, tri in enumerate(t):
+        for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
+            faces.setdefault((min(a, b), max(a, b)), []).append(f)
+    out = np.zeros((len(edges), 2, 3))
+    for k, (a, b) in enumerate(np.asarray(edges, dtype=np.int64).reshape(-1, 2)):
+        fs = faces.get((min(a, b), max(a, b)), [])
+        if len(fs) == 2:
+            out[k] = n[fs]
+    return out
 
 
 def box_mesh(half_extents):
@@ -214,16 +234,31 @@ def _vt_pair(a0: wp.vec3, a1: wp.vec3, src: int, ia: int, ib: int, ic: int,
 @wp.func
 def _ee_pair(a0: wp.vec3, b0: wp.vec3, a1: wp.vec3, b1: wp.vec3, src: int, ic: int, id: int,
              x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), gap: float, sep: float,
-             mu: float, rec: ContactRecord):
+             mu: float, rec: ContactRecord, w1: wp.vec3, w2: wp.vec3, half: wp.vec3,
+             inv0: wp.transform):
     """The narrow phase of a sharp edge's path against cloth edge ``(ic, id)``: an entry keeping
-    the cloth edge ``sep`` (the thickness) away from the obstacle edge's end position."""
+    the cloth edge ``sep`` (the thickness) away from the obstacle edge's end position. ``w1``,
+    ``w2``: the normals of the obstacle edge's two faces (zero for a rim). ``half``: a box's half
+    extents (zero for a mesh) and ``inv0`` its inverse pose at the step's start: a cloth edge
+    whose closest point lies in the box (or on it) at the start has no side it came from (it
+    touched or straddled the edge: a sheet starting on the box's face), and a normal pointing
+    into the solid behind both faces becomes their bisector (kept, the response held such an
+    edge inside). A mesh has no such inside test here: behind both faces of a thin part's edge
+    is also its far side, where cloth may lie."""
     s, toi = ccd_edge_edge(d3(a0), d3(b0), d3(x0[ic]), d3(x0[id]), d3(a1), d3(b1),
                            d3(x1[ic]), d3(x1[id]), wp.float64(gap), CCD_ITERATIONS)
     if s != CCD_MISS:
         # at the time of impact; the cloth edge moves away from the obstacle edge (-n)
         n, fs, ft2, ok = ee_impact(a0, a1, b0, b1, x0[ic], x1[ic], x0[id], x1[id], toi)
+        n = -n
+        if ok and half[0] > 0.0 and wp.dot(n, w1) < 0.0 and wp.dot(n, w2) < 0.0:
+            s0, t0, q0, r0 = segment_segment_closest(d3(a0), d3(b0), d3(x0[ic]), d3(x0[id]))
+            pl = wp.transform_point(inv0, f3(r0))
+            slack = 1.0e-4 * sep
+            if (wp.abs(pl[0]) <= half[0] + slack and wp.abs(pl[1]) <= half[1] + slack
+                    and wp.abs(pl[2]) <= half[2] + slack):
+                n = wp.normalize(w1 + w2)
         if ok:
-            n = -n
             o1 = a1 + fs * (b1 - a1)
             o0 = a0 + fs * (b0 - a0)
             w = wp.vec4(1.0 - ft2, ft2, 0.0, 0.0)
@@ -274,6 +309,10 @@ def edge_edge_kernel(
     sep: float,
     mu_t: wp.array(dtype=float),
     rec: ContactRecord,
+    face_normals: wp.array2d(dtype=wp.vec3),
+    box_half: wp.array(dtype=wp.vec3),
+    pose_of: wp.array(dtype=int),
+    poses: wp.array(dtype=wp.transform),
 ):
     """A sharp obstacle edge against the cloth edges its path comes within ``gap`` of
     (`_ee_pair`)."""
@@ -289,9 +328,13 @@ def edge_edge_kernel(
     q = wp.bvh_query_aabb(bvh, lo, hi)
     e = int(0)
     src = source[ja]
+    pose = poses[5 * pose_of[ja] + 1]  # the end of the step
+    w1 = wp.transform_vector(pose, face_normals[k, 0])
+    w2 = wp.transform_vector(pose, face_normals[k, 1])
+    inv0 = poses[5 * pose_of[ja] + 2]  # the inverse at the start
     while wp.bvh_query_next(q, e):
         _ee_pair(a0, b0, a1, b1, src, edges[e, 0], edges[e, 1], x0, x1, gap, sep, mu_t[src],
-                 rec)
+                 rec, w1, w2, box_half[k], inv0)
 
 
 #: an entry whose free vertices carry less than this share of its squared weights is held by
@@ -419,6 +462,41 @@ def inelastic_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3
             ws = moved[i] * (inv_dt / float(c))
         moved[i] = wp.vec3(0.0)
     inelastic_apply_rel(i, x, v, acc, cnt, ws)
+
+
+@wp.kernel
+def arrival_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.vec3),
+                           x_start: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float),
+                           acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int),
+                           num_threads: int):
+    """`jacobi_project_kernel` inside a position-based solver's iterations: an entry is held
+    where it was at the step's start when it started inside (``g(x_start) < 0``), not pushed out
+    (a position-based solver's velocity update would make that push a separation speed: a sheet
+    starting on a box's face left at 5.6 m/s); the response after the step, whose velocity
+    rule is inelastic, takes it out."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(first + t, count, num_threads):
+        vid = rec.vertex[e]
+        w = rec.weight[e]
+        n = rec.normal[e]
+        g = -rec.offset[e]
+        g0 = -rec.offset[e]
+        den = float(0.0)
+        for j in range(4):
+            v = vid[j]
+            if v >= 0:
+                g = g + w[j] * wp.dot(n, x[v])
+                g0 = g0 + w[j] * wp.dot(n, x_start[v])
+                den = den + w[j] * w[j] * inv_mass[v]
+        g = g - wp.min(g0, 0.0)
+        if g < 0.0 and den > 0.0 and not pin_held(vid, w, inv_mass):
+            lam = -g / den
+            for j in range(4):
+                v = vid[j]
+                if v >= 0 and inv_mass[v] > 0.0:
+                    wp.atomic_add(acc, v, (lam * w[j] * inv_mass[v]) * n)
+                    wp.atomic_add(cnt, v, 1)
 
 
 @wp.kernel
@@ -552,10 +630,10 @@ class FeatureContact:
         if contact is None:
             return
         # meshes and boxes (a box's edges and corners are as sharp as a mesh's)
-        shapes = [(a, box_mesh(ob.half_extents)) for a, ob in enumerate(contact.analytic)
-                  if ob.kind == KIND_BOX]
+        shapes = [(a, box_mesh(ob.half_extents), np.asarray(ob.half_extents, dtype=np.float64))
+                  for a, ob in enumerate(contact.analytic) if ob.kind == KIND_BOX]
         n_analytic = len(contact.analytic)
-        shapes += [(n_analytic + m, (ob.vertices, ob.triangles))
+        shapes += [(n_analytic + m, (ob.vertices, ob.triangles), np.zeros(3))
                    for m, ob in enumerate(contact.meshes)]
         if not shapes:
             return
@@ -564,9 +642,9 @@ class FeatureContact:
         # the longest cloth edge, stretched by STRETCH_MARGIN: ridges it cannot cut into by
         # more than half the thickness are skipped
         self.length = STRETCH_MARGIN * float(rest.max()) if len(rest) else 0.0
-        local, pose_of, src, fedges = [], [], [], []
+        local, pose_of, src, fedges, fnormals, halves = [], [], [], [], [], []
         base = 0
-        for k, (verts, tris) in shapes:
+        for k, (verts, tris), half in shapes:
             e, vs = sharp_features(verts, tris, self.length, self.thickness)
             if len(vs) == 0:
                 continue
@@ -576,6 +654,8 @@ class FeatureContact:
             pose_of.append(np.full(len(vs), k))
             src.append(np.full(len(vs), k))
             fedges.append(remap[e])
+            fnormals.append(edge_face_normals(verts, tris, e))
+            halves.append(np.tile(half, (len(e), 1)))
             base += len(vs)
         self.active = base > 0
         self.num_vertices = base
@@ -596,6 +676,12 @@ class FeatureContact:
         self.source = wp.array(np.concatenate(src).astype(np.int32), dtype=int, device=d)
         self.fedges = wp.array(np.concatenate(fedges).astype(np.int32).reshape(-1, 2),
                                dtype=wp.int32, ndim=2, device=d)
+        #: a box's half extents for each of its sharp edges (zeros for a mesh's)
+        self.box_half = wp.array(np.concatenate(halves).astype(np.float32).reshape(-1, 3),
+                                 dtype=wp.vec3, device=d)
+        #: each sharp edge's two face normals in its obstacle's frame (zeros for a rim)
+        self.face_normals = wp.array(np.concatenate(fnormals).astype(np.float32).reshape(-1, 2, 3),
+                                     dtype=wp.vec3, ndim=2, device=d)
         self.p0 = wp.zeros(base, dtype=wp.vec3, device=d)
         self.p1 = wp.zeros(base, dtype=wp.vec3, device=d)
         ordered = contact.analytic + contact.meshes
@@ -645,7 +731,8 @@ class FeatureContact:
         if self.num_edges:
             launch(edge_edge_kernel, self.num_edges,
                    [b.edge_bvh.id, self.p0, self.p1, self.fedges, self.source, x0, x1,
-                    b.edges, gap, self.thickness, self.mu_t, record], device=d)
+                    b.edges, gap, self.thickness, self.mu_t, record, self.face_normals,
+                    self.box_half, self.pose_of, self.contact.poses], device=d)
 
     def _refit(self, x0, x1):
         """New vertex boxes around the paths ``x0 -> x1`` (widened by `FAT_SLACK` thicknesses),
@@ -659,15 +746,16 @@ class FeatureContact:
         b.tri_bvh.refit()
         b.edge_bvh.refit()
 
-    def project_positions(self, x, record, first: int = 0) -> None:
+    def project_positions(self, x, x_start, record, first: int = 0) -> None:
         """One Jacobi round of the record's entries from ``first`` on, positions only (inside a
-        position-based solver's iterations, whose velocity update follows the positions)."""
+        position-based solver's iterations, whose velocity update follows the positions); an
+        entry that started inside is held where it started (`arrival_project_kernel`)."""
         if not self.active:
             return
         d, m = self.device, self.model
-        launch(jacobi_project_kernel, self.threads,
-               [record, first, x, m.inv_mass, self.acc, self.cnt, self.violated,
-                RESOLVE_TOL * self.thickness, self.threads, self._no_moved], device=d)
+        launch(arrival_project_kernel, self.threads,
+               [record, first, x, x_start, m.inv_mass, self.acc, self.cnt, self.threads],
+               device=d)
         launch(position_apply_kernel, m.num_vertices, [x, self.acc, self.cnt], device=d)
 
     def respond(self, state, dt: float, record, first: int = 0) -> None:

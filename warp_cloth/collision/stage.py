@@ -321,7 +321,7 @@ class CollisionStage:
         if self.contact is not None:
             self.contact.project_positions(x, x_start, dt, time)
             if self.pair_record is not None:
-                self.features.project_positions(x, self.pair_record)
+                self.features.project_positions(x, x_start, self.pair_record)
 
     # a solver's vertex update fused with the far tests
     @property
