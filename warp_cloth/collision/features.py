@@ -50,12 +50,12 @@ import numpy as np
 import warp as wp
 
 from ..util import launch
-from .broadphase import ClothBroadPhase
+from .broadphase import ClothBroadPhase, cloth_bounds_kernel
 from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, f3,
                        segment_segment_closest, vt_impact)
 from .motion import KIND_BOX
-from .record import (KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, record_append,
-                     record_threads)
+from .record import (KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, entry_gap,
+                     record_append, record_threads)
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
@@ -381,13 +381,7 @@ def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.v
         vid = rec.vertex[e]
         w = rec.weight[e]
         n = rec.normal[e]
-        g = -rec.offset[e]
-        den = float(0.0)
-        for j in range(4):
-            v = vid[j]
-            if v >= 0:
-                g = g + w[j] * wp.dot(n, x[v])
-                den = den + w[j] * w[j] * inv_mass[v]
+        g, den = entry_gap(rec, e, x, inv_mass)
         if g < 0.0 and den > 0.0 and pin_held(vid, w, inv_mass):
             # the entry's point is (nearly) a pinned vertex's: not projected (see `pin_held`),
             # flagged in ``violated[1]``
@@ -480,15 +474,8 @@ def arrival_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.
         vid = rec.vertex[e]
         w = rec.weight[e]
         n = rec.normal[e]
-        g = -rec.offset[e]
-        g0 = -rec.offset[e]
-        den = float(0.0)
-        for j in range(4):
-            v = vid[j]
-            if v >= 0:
-                g = g + w[j] * wp.dot(n, x[v])
-                g0 = g0 + w[j] * wp.dot(n, x_start[v])
-                den = den + w[j] * w[j] * inv_mass[v]
+        g, den = entry_gap(rec, e, x, inv_mass)
+        g0, den0 = entry_gap(rec, e, x_start, inv_mass)
         g = g - wp.min(g0, 0.0)
         if g < 0.0 and den > 0.0 and not pin_held(vid, w, inv_mass):
             lam = -g / den
@@ -525,35 +512,6 @@ def vertex_box_kernel(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), 
     hi[i] = wp.max(x0[i], x1[i]) + wp.vec3(slack)
     if i == 0:
         stale[0] = 0
-
-
-@wp.kernel
-def element_box_kernel(vlo: wp.array(dtype=wp.vec3), vhi: wp.array(dtype=wp.vec3),
-                       tris: wp.array2d(dtype=wp.int32), edges: wp.array2d(dtype=wp.int32),
-                       num_tris: int, pad: float, lowers: wp.array(dtype=wp.vec3),
-                       uppers: wp.array(dtype=wp.vec3), elowers: wp.array(dtype=wp.vec3),
-                       euppers: wp.array(dtype=wp.vec3)):
-    """A triangle's or edge's box: its vertices' boxes, widened by ``pad`` (threads below
-    ``num_tris`` for triangles, the rest for edges). It holds every path of the element whose
-    vertices stay in their boxes, so a query of a sharp feature's swept box finds it."""
-    k = wp.tid()
-    lo = wp.vec3(1.0e30)
-    hi = wp.vec3(-1.0e30)
-    if k < num_tris:
-        for c in range(3):
-            i = tris[k, c]
-            lo = wp.min(lo, vlo[i])
-            hi = wp.max(hi, vhi[i])
-        lowers[k] = lo - wp.vec3(pad)
-        uppers[k] = hi + wp.vec3(pad)
-    else:
-        e = k - num_tris
-        for c in range(2):
-            i = edges[e, c]
-            lo = wp.min(lo, vlo[i])
-            hi = wp.max(hi, vhi[i])
-        elowers[e] = lo - wp.vec3(pad)
-        euppers[e] = hi + wp.vec3(pad)
 
 
 @wp.kernel
@@ -740,7 +698,9 @@ class FeatureContact:
         b, d = self.broad, self.device
         launch(vertex_box_kernel, len(x0),
                [x0, x1, FAT_SLACK * self.thickness, self._vlo, self._vhi, self._stale], device=d)
-        launch(element_box_kernel, b.num_tris + b.num_edges,
+        # an element's box holds its vertices' boxes (the swept boxes of "paths" from each
+        # vertex box's low corner to its high one), widened by the gap
+        launch(cloth_bounds_kernel, b.num_tris + b.num_edges,
                [self._vlo, self._vhi, b.tris, b.edges, b.num_tris, self._pad, b.lowers, b.uppers,
                 b.elowers, b.euppers], device=d)
         b.tri_bvh.refit()

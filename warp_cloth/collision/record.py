@@ -31,8 +31,9 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
-__all__ = ["ContactRecord", "make_record", "KIND_VERTEX_OBSTACLE", "KIND_VERTEX_TRIANGLE",
-           "KIND_EDGE_EDGE", "record_append", "planes_to_record_kernel", "record_threads"]
+__all__ = ["ContactRecord", "make_record", "entry_gap", "KIND_VERTEX_OBSTACLE",
+           "KIND_VERTEX_TRIANGLE", "KIND_EDGE_EDGE", "record_append", "planes_to_record_kernel",
+           "record_threads"]
 
 KIND_VERTEX_OBSTACLE = 0
 KIND_VERTEX_TRIANGLE = 1
@@ -102,6 +103,25 @@ def record_append(rec: ContactRecord, kind: int, vertex: wp.vec4i, weight: wp.ve
     rec.source[slot] = source
     rec.kind[slot] = kind
     return slot
+
+
+@wp.func
+def entry_gap(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
+              inv_mass: wp.array(dtype=float)):
+    """``(g, im)`` of entry ``e`` at positions ``x``: its gap ``n . sum w_j x_j - offset``
+    (negative: violated) and ``sum w_j^2 / m_j`` (its inverse effective mass; 0 when every
+    vertex of it is pinned)."""
+    vid = rec.vertex[e]
+    w = rec.weight[e]
+    n = rec.normal[e]
+    g = -rec.offset[e]
+    im = float(0.0)
+    for j in range(4):
+        v = vid[j]
+        if v >= 0:
+            g = g + w[j] * wp.dot(n, x[v])
+            im = im + w[j] * w[j] * inv_mass[v]
+    return g, im
 
 
 @wp.kernel

@@ -98,7 +98,7 @@ import numpy as np
 import warp as wp
 
 from ..collision.features import pin_held
-from ..collision.record import KIND_VERTEX_OBSTACLE, ContactRecord
+from ..collision.record import KIND_VERTEX_OBSTACLE, ContactRecord, entry_gap
 from ..util import launch, positive_finite
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -115,23 +115,6 @@ BATCH = 16
 #: target is raised (`ContactCoupling.end_step`); a deeper one, an impact the solve did not
 #: stop, is left to the response after the solve rather than pushed out by the next solve
 SAG_CAP = 0.2
-
-
-@wp.func
-def entry_gap(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
-              inv_mass: wp.array(dtype=float)):
-    """``g`` of entry ``e`` at ``x`` and ``1/m_eff`` (0 when every vertex of it is pinned)."""
-    vid = rec.vertex[e]
-    w = rec.weight[e]
-    n = rec.normal[e]
-    g = -rec.offset[e]
-    im = float(0.0)
-    for j in range(4):
-        v = vid[j]
-        if v >= 0:
-            g = g + w[j] * wp.dot(n, x[v])
-            im = im + w[j] * w[j] * inv_mass[v]
-    return g, im
 
 
 @wp.func
