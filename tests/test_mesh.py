@@ -191,3 +191,7 @@ def test_weld_refuses_what_it_would_collapse(tmp_path):
     assert TriMesh.from_obj(p).num_vertices == 6
     w = TriMesh.from_obj(p, weld=True)
     assert w.num_vertices == 4 and len(w.edges) == 5
+    assert TriMesh.from_obj(p, weld=1e-3).num_vertices == 4
+    for bad in (-1.0, "close", float("nan")):
+        with pytest.raises(ValueError, match=r"seam\.obj: weld must be"):
+            TriMesh.from_obj(p, weld=bad)

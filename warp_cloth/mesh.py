@@ -494,7 +494,15 @@ class TriMesh:
         mesh = cls(v, np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=name, up_axis=up_axis)
         if weld is False or weld is None:
             return mesh
-        tol = 0.0 if weld is True else float(weld)
+        if weld is True:
+            return mesh.weld(0.0)[0]
+        try:
+            tol = float(weld)
+        except (TypeError, ValueError):
+            tol = math.nan
+        if isinstance(weld, (bool, np.bool_)) or not (math.isfinite(tol) and tol >= 0.0):
+            raise ValueError(f"{path}: weld must be True, False or a distance >= 0 in metres, "
+                             f"got {weld!r}")
         return mesh.weld(tol)[0]
 
     def to_obj(self, path: str | os.PathLike) -> None:
