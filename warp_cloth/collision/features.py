@@ -369,12 +369,17 @@ def pin_held(vid: wp.vec4i, w: wp.vec4, inv_mass: wp.array(dtype=float)):
 def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.vec3),
                           inv_mass: wp.array(dtype=float), acc: wp.array(dtype=wp.vec3),
                           cnt: wp.array(dtype=int), violated: wp.array(dtype=int),
-                          tol: float, num_threads: int, moved: wp.array(dtype=wp.vec3)):
+                          tol: float, num_threads: int, moved: wp.array(dtype=wp.vec3),
+                          x_start: wp.array(dtype=wp.vec3)):
     """One Jacobi round: each violated entry's correction, shared by mass and weight (the
     number of entries violated by more than ``tol`` is added to ``violated[0]``; an entry
     `pin_held` is left alone and, if ``violated`` has a second slot, sets ``violated[1]``). With a
     ``moved`` array (obstacle features), also how far the entry's plane moved along its normal
-    in the step, ``(offset - n . ref) n``, summed per vertex like the correction."""
+    in the step, ``(offset - n . ref) n``, summed per vertex like the correction. With an
+    ``x_start`` array (inside a position-based solver's iterations), an entry that started
+    inside (``g(x_start) < 0``) is held where it started, not pushed out: the solver's velocity
+    update would make that push a separation speed (a sheet starting on a box's face left at
+    5.6 m/s); the response after the step, whose velocity rule is inelastic, takes it out."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(first + t, count, num_threads):
@@ -382,6 +387,9 @@ def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.v
         w = rec.weight[e]
         n = rec.normal[e]
         g, den = entry_gap(rec, e, x, inv_mass)
+        if x_start.shape[0] > 0:
+            g0, den0 = entry_gap(rec, e, x_start, inv_mass)
+            g = g - wp.min(g0, 0.0)
         if g < 0.0 and den > 0.0 and pin_held(vid, w, inv_mass):
             # the entry's point is (nearly) a pinned vertex's: not projected (see `pin_held`),
             # flagged in ``violated[1]``
@@ -456,34 +464,6 @@ def inelastic_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3
             ws = moved[i] * (inv_dt / float(c))
         moved[i] = wp.vec3(0.0)
     inelastic_apply_rel(i, x, v, acc, cnt, ws)
-
-
-@wp.kernel
-def arrival_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.vec3),
-                           x_start: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float),
-                           acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int),
-                           num_threads: int):
-    """`jacobi_project_kernel` inside a position-based solver's iterations: an entry is held
-    where it was at the step's start when it started inside (``g(x_start) < 0``), not pushed out
-    (a position-based solver's velocity update would make that push a separation speed: a sheet
-    starting on a box's face left at 5.6 m/s); the response after the step, whose velocity
-    rule is inelastic, takes it out."""
-    t = wp.tid()
-    count = wp.min(rec.count[0], rec.vertex.shape[0])
-    for e in range(first + t, count, num_threads):
-        vid = rec.vertex[e]
-        w = rec.weight[e]
-        n = rec.normal[e]
-        g, den = entry_gap(rec, e, x, inv_mass)
-        g0, den0 = entry_gap(rec, e, x_start, inv_mass)
-        g = g - wp.min(g0, 0.0)
-        if g < 0.0 and den > 0.0 and not pin_held(vid, w, inv_mass):
-            lam = -g / den
-            for j in range(4):
-                v = vid[j]
-                if v >= 0 and inv_mass[v] > 0.0:
-                    wp.atomic_add(acc, v, (lam * w[j] * inv_mass[v]) * n)
-                    wp.atomic_add(cnt, v, 1)
 
 
 @wp.kernel
@@ -652,7 +632,10 @@ class FeatureContact:
         # obstacle moves
         self.moved = wp.zeros(n if getattr(contact, "moving", False) else 0, dtype=wp.vec3,
                               device=d)
-        self._no_moved = wp.zeros(0, dtype=wp.vec3, device=d)
+        self._no_moved = wp.zeros(0, dtype=wp.vec3, device=d)  # also: no x_start
+        # the in-iteration projection's count of violated entries (one slot: pinned entries
+        # are not flagged there), not read
+        self._scratch = wp.zeros(1, dtype=int, device=d)
         self.violated = wp.zeros(2, dtype=int, device=d)  # [violated entries, a pin_held one]
         self.threads = record_threads(n, d)
         self._flags = wp.zeros(2, dtype=int, device=d)
@@ -709,13 +692,14 @@ class FeatureContact:
     def project_positions(self, x, x_start, record, first: int = 0) -> None:
         """One Jacobi round of the record's entries from ``first`` on, positions only (inside a
         position-based solver's iterations, whose velocity update follows the positions); an
-        entry that started inside is held where it started (`arrival_project_kernel`)."""
+        entry that started inside is held where it started (`jacobi_project_kernel` with
+        ``x_start``)."""
         if not self.active:
             return
         d, m = self.device, self.model
-        launch(arrival_project_kernel, self.threads,
-               [record, first, x, x_start, m.inv_mass, self.acc, self.cnt, self.threads],
-               device=d)
+        launch(jacobi_project_kernel, self.threads,
+               [record, first, x, m.inv_mass, self.acc, self.cnt, self._scratch,
+                RESOLVE_TOL * self.thickness, self.threads, self._no_moved, x_start], device=d)
         launch(position_apply_kernel, m.num_vertices, [x, self.acc, self.cnt], device=d)
 
     def respond(self, state, dt: float, record, first: int = 0) -> None:
@@ -734,7 +718,8 @@ class FeatureContact:
         d, m = self.device, self.model
         launch(jacobi_project_kernel, self.threads,
                [record, first, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
-                RESOLVE_TOL * self.thickness, self.threads, self.moved], device=d)
+                RESOLVE_TOL * self.thickness, self.threads, self.moved, self._no_moved],
+               device=d)
         launch(inelastic_apply_kernel, m.num_vertices,
                [state.x, state.v, self.acc, self.cnt, self.moved, 1.0 / dt], device=d)
         launch(round_done_kernel, 1,

@@ -1148,14 +1148,15 @@ class SelfCollision:
         responses of a span (`CollisionStage.plan`, whose `span_step_kernel` applies it)."""
         launch(jacobi_project_kernel, self.threads,
                [self.record, 0, state.x, self.model.inv_mass, self.acc, self.cnt, self._held,
-                0.01 * self.thickness, self.threads, self._no_moved], device=self.device)
+                0.01 * self.thickness, self.threads, self._no_moved, self._no_moved],
+               device=self.device)
 
     def _project(self, state, dt):
         m, d = self.model, self.device
         for _ in range(self.iterations):
             launch(jacobi_project_kernel, self.threads,
                    [self.record, 0, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
-                    0.01 * self.thickness, self.threads, self._no_moved], device=d)
+                    0.01 * self.thickness, self.threads, self._no_moved, self._no_moved], device=d)
             launch(inelastic_apply_kernel, m.num_vertices,
                    [state.x, state.v, self.acc, self.cnt, self._no_moved, 0.0], device=d)
 
