@@ -943,7 +943,10 @@ def test_cloth_starting_on_a_box_face_does_not_keep_edges_inside(solver_name):
     rims touch them at the step's start, where the side a cloth edge came from means nothing;
     the normal from the closest points then pointed into the box for some, which the response
     kept them on (14 edges inside in every frame, 4.5 mm deep, every solver). A normal into the
-    solid behind both faces of the rim is now their bisector."""
+    solid behind both faces of the rim is now their bisector. Under PBD such an entry, which
+    starts inside, is held inside the iterations rather than pushed out (pushed, PBD's velocity
+    update launched the sheet: mean height 0.55 -> 1.93 m, 30 m/s; held, within 6 cm: what
+    is left is every solver's push of vertices that start inside the thickness)."""
     from warp_cloth import ClothModel, Scene, TriMesh, make_solver
     from warp_cloth.collision import Box, CollisionStage
 
@@ -952,7 +955,13 @@ def test_cloth_starting_on_a_box_face_does_not_keep_edges_inside(solver_name):
     box = Box((0.25, 0.05, 0.1), (0.0, 0.5, 0.0))
     stage = CollisionStage(model, [box], thickness=0.005)
     scene = Scene(model, make_solver(solver_name, model, collision=stage), fps=60, frames=10)
-    inside = []
-    on_frame = _count_edges_inside(box, g.edges, inside)
+    inside, heights = [], []
+    count = _count_edges_inside(box, g.edges, inside)
+
+    def on_frame(f, st):
+        count(f, st)
+        heights.append(float(st.positions()[:, 1].mean()))
+
     scene.run(None, quiet=True, energy=False, on_frame=on_frame)
     assert max(inside[1:]) == 0, inside
+    assert max(heights) < 0.55 + 0.1, heights  # not launched
