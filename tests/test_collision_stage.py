@@ -942,8 +942,8 @@ def test_cloth_starting_on_a_box_face_does_not_keep_edges_inside(solver_name):
     """A sheet that starts lying exactly on a box's top face: the cloth edges over the box's
     rims touch them at the step's start, where the side a cloth edge came from means nothing;
     the normal from the closest points then pointed into the box for some, which the response
-    kept them on (14 edges inside in every frame, 4.5 mm deep, every solver). A normal into the
-    solid behind both faces of the rim is now their bisector. Under PBD such an entry, which
+    kept them on (14 edges inside in every frame, 4.5 mm deep, every solver). Such an entry's
+    normal is now the box's own (`features.box_start_normal`). Under PBD such an entry, which
     starts inside, is held inside the iterations rather than pushed out (pushed, PBD's velocity
     update launched the sheet: mean height 0.55 -> 1.93 m, 30 m/s; held, within 6 cm: what
     is left is every solver's push of vertices that start inside the thickness)."""
