@@ -733,7 +733,7 @@ def test_feature_pass_replays_exactly_when_captured(thin_small):
 
 def test_feature_response_makes_no_separation_speed_out_of_overlap(thin_small):
     """A cloth edge already 1 mm inside a sharp feature's thickness, at rest: the response
-    moves it out and leaves it at rest (`inelastic_apply_kernel`). With ``v += d / dt`` it left at
+    moves it out and leaves it at rest (`inelastic_apply`). With ``v += d / dt`` it left at
     0.1 m/s here, and cloth resting on the features of a static mesh gained energy every step
     (``mesh`` scene at 16 x 16 cells: up to 3e-2 J in a frame under projective dynamics)."""
     from warp_cloth.contact_scenes import thin

@@ -462,13 +462,13 @@ def test_self_contacts_inside_the_solve_keep_a_fold_calm(solver_name):
 
 
 def test_inelastic_response_velocity_exact():
-    """The obstacle features' velocity rule on exact cases: an approaching vertex loses its
-    approach along the correction (a resting contact over one step: exactly ``v += d / dt``),
-    one already leaving along it keeps its velocity (``v += d / dt`` kicked it), a tangential
+    """The response's velocity rule on exact cases: an approaching vertex loses its approach
+    along the correction (a resting contact over one step: exactly ``v += d / dt``), one
+    already leaving along it keeps its velocity (``v += d / dt`` kicked it), a tangential
     velocity is kept, and a vertex without correction is untouched."""
     import warp as wp
 
-    from warp_cloth.collision.features import inelastic_apply_kernel
+    from warp_cloth.collision.self_collision import inelastic_apply_kernel
 
     dt, g = 0.01, 9.81
     x = wp.array(np.zeros((4, 3)), dtype=wp.vec3)
@@ -504,80 +504,6 @@ def test_inelastic_response_velocity_exact():
     np.testing.assert_allclose(v.numpy(), [[0.0, 0.5, 0.0], [0.2, 0.8, 0.0], [0.0, 0.5, 0.0]],
                                atol=1e-6)
     assert not moved.numpy().any()
-
-
-def test_pair_impulse_exact():
-    """A self-contact's velocity rule on one vertex-triangle entry (unequal masses): the
-    relative normal speed of its two sides is removed, shared like the position correction,
-    so that momentum is kept, the tangential velocities are untouched and a pair whose sides
-    separate gets no impulse."""
-    import warp as wp
-
-    from warp_cloth.collision.features import jacobi_project_kernel, pair_apply_kernel
-    from warp_cloth.collision.record import KIND_VERTEX_TRIANGLE, make_record
-
-    h = 0.005
-    rec = make_record(4, "cpu")
-    b = np.array([0.2, 0.3, 0.5])
-    # vertex 0 above triangle (1, 2, 3) at 3 mm, closer than h: g = n . (x0 - sum b x_k) - h
-    rec.count.assign([1])
-    rec.vertex.assign([wp.vec4i(0, 1, 2, 3)])
-    rec.weight.assign([wp.vec4(1.0, -b[0], -b[1], -b[2])])
-    rec.normal.assign([wp.vec3(0.0, 1.0, 0.0)])
-    rec.offset.assign([h])
-    rec.kind.assign([KIND_VERTEX_TRIANGLE])
-    xs = np.array([[0.1, 0.003, 0.1], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    m = np.array([1e-3, 2e-3, 1e-3, 4e-3])
-    for vy, kick in ((-1.0, True), (0.7, False)):  # the vertex approaching / leaving
-        v0 = np.array([[0.3, vy, 0.0], [0.0, 0.2, 0.1], [0.0, 0.2, 0.0], [0.0, 0.2, -0.2]])
-        x, v = wp.array(xs, dtype=wp.vec3), wp.array(v0, dtype=wp.vec3)
-        acc, vacc = wp.zeros(4, dtype=wp.vec3), wp.zeros(4, dtype=wp.vec3)
-        cnt = wp.zeros(4, dtype=int)
-        inv = wp.array(1.0 / m, dtype=float)
-        none = wp.zeros(0, dtype=wp.vec3)
-        wp.launch(jacobi_project_kernel, 1, [rec, 0, x, inv, acc, cnt, wp.zeros(1, dtype=int),
-                                            0.0, 1, none, none, v, vacc])
-        wp.launch(pair_apply_kernel, 4, [x, v, acc, vacc, cnt])
-        v1, x1 = v.numpy(), x.numpy()
-        w = np.array([1.0, -b[0], -b[1], -b[2]])
-        # momentum kept, tangential velocities untouched
-        np.testing.assert_allclose((m[:, None] * v1).sum(0), (m[:, None] * v0).sum(0), atol=1e-9)
-        np.testing.assert_allclose(v1[:, [0, 2]], v0[:, [0, 2]], atol=1e-7)
-        u0, u1 = w @ v0[:, 1], w @ v1[:, 1]
-        if kick:
-            assert u0 < 0 and abs(u1) < 1e-6  # the approach is gone, nothing more
-        else:
-            assert u0 > 0
-            np.testing.assert_allclose(v1, v0, atol=1e-7)
-        g1 = x1[0, 1] - b @ x1[1:, 1] - h  # the position correction closes the gap
-        assert abs(g1) < 1e-7
-
-
-@pytest.mark.parametrize("solver_name", ["explicit", "implicit", "pbd", "pd"])
-def test_self_collision_keeps_momentum(solver_name):
-    """Two parallel sheets without gravity, 2 cm apart, the lower one at 1 m/s catching the
-    upper one at 0.5 m/s along their normal, both drifting sideways at 0.3 m/s: an inelastic
-    collision leaves both near 0.75 m/s (momentum kept) and the drift unchanged. Measured with
-    the old rule (each vertex's approach along its correction taken against a surface at
-    rest): 0 and 0.5 m/s under explicit Euler and PBD, half the momentum lost; a sheet carried
-    round a spinning sphere gained energy in the sphere's frame at every response."""
-    from warp_cloth import ClothModel, Scene, TriMesh, make_solver
-
-    a = TriMesh.grid(8, 8, size=0.2, plane="xz", origin=(-0.1, 0.0, -0.1))
-    n = a.num_vertices
-    mesh = TriMesh(np.concatenate([a.vertices, a.vertices + [0.01, 0.02, 0.005]]),
-                   np.concatenate([a.triangles, a.triangles + n]))
-    vel = np.zeros((2 * n, 3))
-    vel[:n, 1], vel[n:, 1], vel[:, 0] = 1.0, 0.5, 0.3
-    model = ClothModel(mesh, density=0.15, gravity=(0, 0, 0), velocity=vel)
-    stage = CollisionStage(model, [], thickness=0.005, self_collision=True)
-    scene = Scene(model, make_solver(solver_name, model, collision=stage), fps=60, frames=8)
-    stats = scene.run(None, quiet=True, energy=False, check_intersections=True)
-    v = scene.state.velocities()
-    assert abs(v[:, 1].mean() - 0.75) < 0.01, v[:, 1].mean()
-    assert abs(v[:n, 1].mean() - v[n:, 1].mean()) < 0.1  # they move on together
-    assert abs(v[:, 0].mean() - 0.3) < 1e-3
-    assert stats.crossing_frames == 0
 
 
 def _two_sheets(gap, res=6, **model_args):
@@ -887,14 +813,10 @@ def test_span_response_records_near_pairs_and_hold_keeps_them_apart():
 
 def test_explicit_drape_self_collision_response_adds_no_energy():
     """Explicit Euler's drape (16x16, self-collision on, spans with allowances), 120 frames run
-    step by step: no response of a span raises the energy by more than 2.5e-4 J (measured:
-    1.65e-4 J at most over ~1,200 responses; 1.7e-5 J with the old, momentum-losing velocity
-    rule, which stopped the upper layer against the world: a layer resting on one that rests
-    on the sphere now shares its impulse with that layer, sinks further within the span and is
-    pushed back by the next response, README *Self-collision*), and no frame crosses itself.
-    With the thickness as the span's detection gap (no near pairs held), the responses pushed
-    layers that had sunk during the span back out at once, stretching springs: up to 3.1e-4 J
-    with the old rule, 3.3e-4 J with this one."""
+    step by step: no response of a span raises the energy by more than 1e-4 J (measured: 5e-5 J
+    at most, 4e-4 J summed over the ~1,000 responses), and no frame crosses itself. With the
+    thickness as the span's detection gap (no near pairs held), the responses pushed layers
+    that had sunk during the span back out at once, stretching springs: up to 3.1e-4 J."""
     from warp_cloth.diagnostics import Meter
     from warp_cloth.scenes import build_scene
 
@@ -914,7 +836,7 @@ def test_explicit_drape_self_collision_response_adds_no_energy():
     sc._span_resolve = measured
     stats = scene.run(quiet=True, check_intersections=True)
     assert stats.crossing_frames == 0
-    assert len(gains) > 120 and max(gains) < 2.5e-4, max(gains)
+    assert len(gains) > 120 and max(gains) < 1e-4, max(gains)
 
 
 def test_span_allowance_after_a_partial_pass_is_a_lower_bound():

@@ -439,8 +439,7 @@ def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.v
                           inv_mass: wp.array(dtype=float), acc: wp.array(dtype=wp.vec3),
                           cnt: wp.array(dtype=int), violated: wp.array(dtype=int),
                           tol: float, num_threads: int, moved: wp.array(dtype=wp.vec3),
-                          x_start: wp.array(dtype=wp.vec3), vel: wp.array(dtype=wp.vec3),
-                          vacc: wp.array(dtype=wp.vec3)):
+                          x_start: wp.array(dtype=wp.vec3)):
     """One Jacobi round: each violated entry's correction, shared by mass and weight (the
     number of entries violated by more than ``tol`` is added to ``violated[0]``; an entry
     `pin_held` is left alone and, if ``violated`` has a second slot, sets ``violated[1]``). With a
@@ -449,13 +448,7 @@ def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.v
     ``x_start`` array (inside a position-based solver's iterations), an entry that started
     inside (``g(x_start) < 0``) is held where it started, not pushed out: the solver's velocity
     update would make that push a separation speed (a sheet starting on a box's face left at
-    5.6 m/s); the response after the step, whose velocity rule is inelastic, takes it out.
-
-    With a ``vel`` array (self-contacts, whose both sides are cloth), also the inelastic
-    impulse of a violated entry whose sides approach, into ``vacc``: the relative normal speed
-    ``u = n . sum_j w_j v_j < 0`` is removed, shared like the correction (``dv_j = -u w_j / m_j
-    / sum_k w_k^2 / m_k n``): momentum is kept and only the approach goes
-    (`pair_apply_kernel`)."""
+    5.6 m/s); the response after the step, whose velocity rule is inelastic, takes it out."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(first + t, count, num_threads):
@@ -478,13 +471,6 @@ def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.v
             shift = wp.vec3(0.0)
             if moved.shape[0] > 0:
                 shift = (rec.offset[e] - wp.dot(n, rec.ref[e])) * n
-            mu = float(0.0)
-            if vel.shape[0] > 0:
-                u = float(0.0)
-                for j in range(4):
-                    if vid[j] >= 0:
-                        u = u + w[j] * wp.dot(n, vel[vid[j]])
-                mu = -wp.min(u, 0.0) / den
             for j in range(4):
                 v = vid[j]
                 if v >= 0 and inv_mass[v] > 0.0:
@@ -492,8 +478,6 @@ def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.v
                     wp.atomic_add(cnt, v, 1)
                     if moved.shape[0] > 0:
                         wp.atomic_add(moved, v, shift)
-                    if vel.shape[0] > 0:
-                        wp.atomic_add(vacc, v, (mu * w[j] * inv_mass[v]) * n)
 
 
 @wp.func
@@ -515,14 +499,20 @@ def inelastic_apply_rel(i: int, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp
         cnt[i] = 0
 
 
+@wp.func
+def inelastic_apply(i: int, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                    acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int)):
+    """`inelastic_apply_kernel` for vertex ``i`` (a surface at rest: the cloth's own layers)."""
+    inelastic_apply_rel(i, x, v, acc, cnt, wp.vec3(0.0))
+
+
 @wp.kernel
 def inelastic_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
                            acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int),
                            moved: wp.array(dtype=wp.vec3), inv_dt: float):
-    """Obstacle features' round: ``x += d`` (``d = acc / cnt``, the Jacobi average) and the
-    velocity loses the component that approached along ``d``: ``v += max(-v . d^, 0) d^``
-    (inelastic; an obstacle has no momentum to keep; self-contacts, whose two sides are cloth,
-    use `pair_apply_kernel`); clears the accumulators. For a resting contact over one step this is ``v += d / dt`` (the step's fall
+    """``x += d`` (``d = acc / cnt``, the Jacobi average) and the velocity loses the component
+    that approached along ``d``: ``v += max(-v . d^, 0) d^`` (inelastic); clears the
+    accumulators. For a resting contact over one step this is ``v += d / dt`` (the step's fall
     is both the approach and the correction). Where the correction is larger than the
     approach (a pair already closer than the thickness, or a path that entered the thickness
     and was leaving again at the end of a span of steps, `SelfCollision.plan`), ``v += d /
@@ -543,36 +533,6 @@ def inelastic_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3
             ws = moved[i] * (inv_dt / float(c))
         moved[i] = wp.vec3(0.0)
     inelastic_apply_rel(i, x, v, acc, cnt, ws)
-
-
-@wp.func
-def pair_apply(i: int, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-               acc: wp.array(dtype=wp.vec3), vacc: wp.array(dtype=wp.vec3),
-               cnt: wp.array(dtype=int)):
-    """Vertex ``i``'s Jacobi averages of a round of cloth-cloth entries (`jacobi_project_kernel`
-    with ``vel``): ``x += acc / cnt``, ``v += vacc / cnt``; clears the accumulators."""
-    c = cnt[i]
-    if c > 0:
-        x[i] = x[i] + acc[i] / float(c)
-        v[i] = v[i] + vacc[i] / float(c)
-        acc[i] = wp.vec3(0.0)
-        vacc[i] = wp.vec3(0.0)
-        cnt[i] = 0
-
-
-@wp.kernel
-def pair_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-                      acc: wp.array(dtype=wp.vec3), vacc: wp.array(dtype=wp.vec3),
-                      cnt: wp.array(dtype=int)):
-    """`pair_apply` for every vertex: the self-contacts' positions and inelastic impulses.
-    Measured with `inelastic_apply_kernel`'s rule instead (each vertex losing the speed with
-    which it approached along its correction, measured against a surface at rest): two sheets
-    meeting at 1 and 0.5 m/s along their normal ended at 0 and 0.5 (half the momentum gone;
-    0.75 and 0.75 now), and a sheet carried round by a spinning sphere, whose layers touch
-    while moving together, was braked in the world's frame at every response: 1.1e-3 J gained
-    in one frame in the sphere's turning frame (12 x 12 sheet, explicit Euler)."""
-    i = wp.tid()
-    pair_apply(i, x, v, acc, vacc, cnt)
 
 
 @wp.kernel
@@ -813,8 +773,7 @@ class FeatureContact:
         d, m = self.device, self.model
         launch(jacobi_project_kernel, self.threads,
                [record, first, x, m.inv_mass, self.acc, self.cnt, self._scratch,
-                RESOLVE_TOL * self.thickness, self.threads, self._no_moved, x_start,
-                self._no_moved, self._no_moved], device=d)
+                RESOLVE_TOL * self.thickness, self.threads, self._no_moved, x_start], device=d)
         launch(position_apply_kernel, m.num_vertices, [x, self.acc, self.cnt], device=d)
 
     def respond(self, state, dt: float, record, first: int = 0) -> None:
@@ -833,8 +792,8 @@ class FeatureContact:
         d, m = self.device, self.model
         launch(jacobi_project_kernel, self.threads,
                [record, first, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
-                RESOLVE_TOL * self.thickness, self.threads, self.moved, self._no_moved,
-                self._no_moved, self._no_moved], device=d)
+                RESOLVE_TOL * self.thickness, self.threads, self.moved, self._no_moved],
+               device=d)
         launch(inelastic_apply_kernel, m.num_vertices,
                [state.x, state.v, self.acc, self.cnt, self.moved, 1.0 / dt], device=d)
         launch(round_done_kernel, 1,

@@ -64,7 +64,7 @@ import warp as wp
 from ..util import launch
 from .broadphase import (ClothBroadPhase, boxes_overlap, cloth_bounds_kernel, grid_radius,
                          vertex_bounds_kernel, vertex_box)
-from .features import jacobi_project_kernel, pair_apply, pair_apply_kernel
+from .features import inelastic_apply, inelastic_apply_kernel, jacobi_project_kernel
 from .impact_zones import ImpactZones
 from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_distance, ee_impact,
                        vt_distance, vt_impact)
@@ -449,8 +449,7 @@ def span_begin_kernel(x: wp.array(dtype=wp.vec3), start: wp.array(dtype=wp.vec3)
 
 @wp.kernel
 def span_step_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-                     acc: wp.array(dtype=wp.vec3), vacc: wp.array(dtype=wp.vec3),
-                     cnt: wp.array(dtype=int),
+                     acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int),
                      start: wp.array(dtype=wp.vec3), reach: float,
                      reach_share: wp.array(dtype=float), allow: wp.array(dtype=float), last: int,
                      steps: wp.array(dtype=int), flag: wp.array(dtype=int)):
@@ -459,7 +458,7 @@ def span_step_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
     from its start of the span than its allowance (``allow``, at least ``reach``: one launch for
     both)."""
     i = wp.tid()
-    pair_apply(i, x, v, acc, vacc, cnt)
+    inelastic_apply(i, x, v, acc, cnt)
     if i == 0:
         steps[0] = steps[0] + 1
         if last != 0:
@@ -860,8 +859,7 @@ class SelfCollision:
         self.capacity = int(capacity or 16 * (n + self.broad.num_edges))
         self.record = make_record(self.capacity, d)
         self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
-        self.vacc = wp.zeros(n, dtype=wp.vec3, device=d)  # the rounds' inelastic impulses
-        self._no_moved = wp.zeros(0, dtype=wp.vec3, device=d)  # no obstacle plane moves
+        self._no_moved = wp.zeros(0, dtype=wp.vec3, device=d)  # its layers do not move apart
         self.cnt = wp.zeros(n, dtype=int, device=d)
         self.threads = record_threads(self.capacity, self.device)
         # per step: STAT_KEYS
@@ -1117,8 +1115,7 @@ class SelfCollision:
         if last:
             self._k = 0
         self.hold(state)
-        launch(span_step_kernel, len(start), [state.x, state.v, self.acc, self.vacc, self.cnt,
-                                              start,
+        launch(span_step_kernel, len(start), [state.x, state.v, self.acc, self.cnt, start,
                                               self._reach, self._reach_share, self._allow,
                                               int(last), steps, flag], device=d)
         wp.capture_if(flag, self._span_resolve, state=state, dt=dt)
@@ -1151,18 +1148,17 @@ class SelfCollision:
         responses of a span (`CollisionStage.plan`, whose `span_step_kernel` applies it)."""
         launch(jacobi_project_kernel, self.threads,
                [self.record, 0, state.x, self.model.inv_mass, self.acc, self.cnt, self._held,
-                0.01 * self.thickness, self.threads, self._no_moved, self._no_moved, state.v,
-                self.vacc], device=self.device)
+                0.01 * self.thickness, self.threads, self._no_moved, self._no_moved],
+               device=self.device)
 
     def _project(self, state, dt):
         m, d = self.model, self.device
         for _ in range(self.iterations):
             launch(jacobi_project_kernel, self.threads,
                    [self.record, 0, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
-                    0.01 * self.thickness, self.threads, self._no_moved, self._no_moved,
-                    state.v, self.vacc], device=d)
-            launch(pair_apply_kernel, m.num_vertices,
-                   [state.x, state.v, self.acc, self.vacc, self.cnt], device=d)
+                    0.01 * self.thickness, self.threads, self._no_moved, self._no_moved], device=d)
+            launch(inelastic_apply_kernel, m.num_vertices,
+                   [state.x, state.v, self.acc, self.cnt, self._no_moved, 0.0], device=d)
 
     def resolve(self, state, x_start, dt: float, steps=None) -> None:
         """Rounds of detection and response on ``x_start -> state.x``, then the impact zones.
