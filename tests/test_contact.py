@@ -376,9 +376,13 @@ def test_table_cloth_slides_off_the_edge(solver_name):
     scene = table(res=32 if solver_name == "pd" else 8, frames=150, solver=solver_name)
     scene.run(quiet=True, energy=False)
     x = scene.state.positions()
-    # the sheet left the table top (x > 0.4 m) and most of it reached the floor
+    # the sheet left the table top (x > 0.4 m) and most of it reached the floor (the table top
+    # is at 0.75 m; with self-collision on, the default, the sheet piles up on the floor in
+    # layers: PD's median height at frame 150 is 0.104 m, 0.056 without it; its leftmost
+    # vertex rests against the table's side at x = 0.405 m, the thickness from it, from frame
+    # 150 to 180, against 0.534 m without)
     assert x[:, 0].min() > 0.4
-    assert np.median(x[:, 1]) < 0.1
+    assert np.median(x[:, 1]) < 0.2
 
 
 # ------------------------------------------------------------------ argument checks

@@ -106,7 +106,7 @@ def test_pins_stay_put_and_scripted_pins_follow_path():
 
 
 def test_divergence_guard_stops_and_file_is_finite(tmp_usd):
-    scene = hanging(res=8, stiffness=1e6, substeps=2, frames=30, device="cpu")
+    scene = hanging(res=8, stiffness=1e6, substeps=2, frames=30, device="cpu", self_collision=False)
     with pytest.raises(SimulationDiverged) as info:
         scene.run(tmp_usd)
     err = info.value
@@ -159,11 +159,13 @@ def test_stable_dt_counts_bending_and_dashpots(bending):
     assert all(a > b for a, b in zip(sdt, sdt[1:])), sdt
     damped = [SymplecticEuler.stable_dt(hanging_model(res=8, spring_damping=c)) for c in (0, 0.01, 0.1)]
     assert damped[0] == pytest.approx(sdt[0]) and damped[0] > damped[1] > damped[2]
-    scene = hanging(res=8, bending=bending, bend_stiffness=1.0, frames=10, device="cpu")
+    scene = hanging(res=8, bending=bending, bend_stiffness=1.0, frames=10, device="cpu",
+                    self_collision=False)
     assert scene.substeps >= 40
     stats = scene.run(None, quiet=True)
     assert stats.max_strain < 0.02
     fewer = hanging(res=8, bending=bending, bend_stiffness=1.0, frames=10, device="cpu",
+                    self_collision=False,
                     substeps=scene.substeps // 4)
     with pytest.raises(SimulationDiverged):
         fewer.run(None, quiet=True)

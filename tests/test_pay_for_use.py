@@ -29,16 +29,29 @@ def loaded_modules(**kw):
 
 
 def test_plain_hanging_cloth_compiles_only_springs_and_explicit():
-    mods = loaded_modules(scene="hanging", solver="explicit")
+    """Self-collision off (it is on by default in the built-in scenes): nothing of the
+    collision layer is compiled."""
+    mods = loaded_modules(scene="hanging", solver="explicit", self_collision=False)
     assert mods == {"warp_cloth.diagnostics", "warp_cloth.solvers.common",
                     "warp_cloth.forces.springs", "warp_cloth.solvers.explicit"}
 
 
+def test_hanging_cloth_with_self_collision_compiles_no_obstacle_contact():
+    """The default hanging scene (self-collision on, no obstacle) compiles the self-collision
+    layer but none of the obstacle contact's kernels."""
+    mods = loaded_modules(scene="hanging", solver="explicit")
+    assert "warp_cloth.collision.self_collision" in mods
+    assert not {m for m in mods if m.startswith("warp_cloth.collision.analytic")
+                or m.startswith("warp_cloth.collision.mesh_contact")}
+
+
 @pytest.mark.parametrize("kw,present,absent", [
-    (dict(scene="flag"), {"warp_cloth.forces.wind"}, {"warp_cloth.forces.bending"}),
-    (dict(scene="hanging", bending="dihedral", bend_stiffness=1e-4), {"warp_cloth.forces.bending"},
-     {"warp_cloth.forces.wind", "warp_cloth.solvers.linear"}),
-    (dict(scene="hanging", solver="implicit"), {"warp_cloth.solvers.implicit", "warp_cloth.solvers.linear"},
+    (dict(scene="flag", self_collision=False), {"warp_cloth.forces.wind"},
+     {"warp_cloth.forces.bending"}),
+    (dict(scene="hanging", bending="dihedral", bend_stiffness=1e-4, self_collision=False),
+     {"warp_cloth.forces.bending"}, {"warp_cloth.forces.wind", "warp_cloth.solvers.linear"}),
+    (dict(scene="hanging", solver="implicit", self_collision=False),
+     {"warp_cloth.solvers.implicit", "warp_cloth.solvers.linear"},
      {"warp_cloth.forces.wind", "warp_cloth.forces.bending", "warp_cloth.solvers.explicit"}),
 ])
 def test_optional_parts_compile_only_when_used(kw, present, absent):

@@ -176,8 +176,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Warp's own messages: start-up, module loads, a missing CUDA driver")
     r.add_argument("--json", action="store_true", help="print the run statistics as JSON")
     r.add_argument("--self-collision", choices=["on", "off"], default=None,
-                   help="keep the cloth from passing through itself (default: on for fold, "
-                        "twist and stack, off elsewhere)")
+                   help="keep the cloth from passing through itself (default: on in every "
+                        "scene)")
     r.add_argument("--check-intersections", action="store_true",
                    help="count the cloth's crossing edge-triangle pairs in every frame (warning "
                         "per frame with any; exit status 5 if any)")

@@ -64,7 +64,7 @@ def sheet_model(*, res: int = 32, shape=None, size: float = 1.0, height: float =
 
 def _contact_scene(model, obstacles, *, solver, solver_options, fps, frames, substeps,
                    corrections, extra_obstacles, strain_bound, name, thickness, friction,
-                   restitution, ccd=True, self_collision=False):
+                   restitution, ccd=True, self_collision=True):
     stage = CollisionStage(model, [*obstacles, *extra_obstacles], thickness=thickness,
                            friction=friction, restitution=restitution, ccd=ccd,
                            self_collision=self_collision)
@@ -79,7 +79,7 @@ def drape(*, solver: str = "explicit", solver_options: dict | None = None, fps: 
           frames: int = 120, substeps=None, corrections=(), obstacles=(),
           strain_bound: float = 10.0, radius: float = 0.3, sphere_center=(0.0, 0.5, 0.0),
           ground: bool = False, thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
-          restitution: float = 0.0, height: float = 0.9, self_collision: bool = False,
+          restitution: float = 0.0, height: float = 0.9, self_collision: bool = True,
           **model_args):
     """A sheet dropped from ``height`` m onto a sphere of ``radius`` m (and a floor if
     ``ground``). ``obstacles``: more obstacles, simulated and drawn like the others."""
@@ -98,7 +98,7 @@ def table(*, solver: str = "explicit", solver_options: dict | None = None, fps: 
           frames: int = 180, substeps=None, corrections=(), obstacles=(),
           strain_bound: float = 10.0, table_size=(0.8, 0.75, 0.6), overhang: float = 0.45,
           thickness: float = DEFAULT_THICKNESS, friction: float = 0.15,
-          restitution: float = 0.0, height: float = 0.85, self_collision: bool = False,
+          restitution: float = 0.0, height: float = 0.85, self_collision: bool = True,
           **model_args):
     """A sheet dropped on a table (box ``table_size`` = width x height x depth, m) with its centre
     ``overhang`` m past the table's centre along +x, so that it slides off onto the floor."""
@@ -119,7 +119,7 @@ def spin(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
          strain_bound: float = 10.0, radius: float = 0.3, sphere_center=(0.0, 0.5, 0.0),
          spin_rate: float = 3.0, start: float = 1.0, ramp: float = 0.5,
          thickness: float = DEFAULT_THICKNESS, friction: float = 0.6,
-         restitution: float = 0.0, height: float = 0.85, self_collision: bool = False,
+         restitution: float = 0.0, height: float = 0.85, self_collision: bool = True,
          **model_args):
     """A sheet drapes over a sphere that starts spinning about +y at ``start`` s, reaching
     ``spin_rate`` rad/s after ``ramp`` s; friction carries the cloth round."""
@@ -149,7 +149,7 @@ def mesh(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
          strain_bound: float = 10.0, mesh_file: str | None = None, scale: float = 1.0,
          position=(0.0, 0.45, 0.0), path: KeyframePath | None = None, ground: bool = True,
          thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
-         restitution: float = 0.0, height: float = 0.65, self_collision: bool = False,
+         restitution: float = 0.0, height: float = 0.65, self_collision: bool = True,
          **model_args):
     """A sheet dropped on a triangle-mesh obstacle (default ``warp_cloth/assets/torus.obj``) that moves along
     a keyframed ``path`` (default `torus_path`), over a floor if ``ground``."""
@@ -224,7 +224,7 @@ def thin(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
          frames: int = 120, substeps=None, corrections=(), obstacles=(),
          strain_bound: float = 10.0, thickness: float = DEFAULT_THICKNESS, friction: float = 0.4,
          restitution: float = 0.0, height: float = 0.45, size: float = 0.9, mesh_options=None,
-         self_collision: bool = False,
+         self_collision: bool = True,
          **model_args):
     """A sheet dropped onto an obstacle with thin parts (`thin_parts_mesh`: a 3 mm blade and a
     12 mm ring, 9,704 triangles) over a floor: the cloth drapes over the blade's rim and the

@@ -63,7 +63,7 @@ def hanging_model(*, res: int = 32, shape=None, size: float = 1.0, height: float
 
 def hanging(*, solver: str = "explicit", solver_options: dict | None = None, fps: float = 60.0,
             frames: int = 120, substeps=None, corrections=(), obstacles=(),
-            strain_bound: float = 10.0, self_collision: bool = False, **model_args) -> Scene:
+            strain_bound: float = 10.0, self_collision: bool = True, **model_args) -> Scene:
     """A sheet hanging from two corners (the GAMES103 lab scene in real-cloth units).
     ``self_collision``: keep it from passing through itself (a `CollisionStage`)."""
     model = hanging_model(**model_args)
@@ -76,7 +76,7 @@ def flag(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
          size: float = 1.5, stiffness: float = DEFAULT_STRETCH_STIFFNESS,
          density: float = DEFAULT_DENSITY, wind_speed: float = 6.0, bending: str = "none",
          bend_stiffness: float = 0.0, damping: float = 0.1, strain_bound: float = 10.0,
-         device=None, self_collision: bool = False, **model_options) -> Scene:
+         device=None, self_collision: bool = True, **model_options) -> Scene:
     """A flag ``size`` x ``2/3 size`` m pinned along its left edge (x = 0) in gusty wind along +x;
     ``self_collision`` as `hanging`."""
     from .forces.wind import Wind

@@ -31,7 +31,7 @@ COLD_SNIPPET = """
 import time; t0 = time.perf_counter()
 from warp_cloth.util import quiet_warp; quiet_warp()
 from warp_cloth.scenes import hanging
-s = hanging(shape=({nx}, {ny}), frames=2, device={device!r})
+s = hanging(shape=({nx}, {ny}), frames=2, device={device!r}, self_collision=False)
 s.run(None, quiet=True)
 print(time.perf_counter() - t0)
 """

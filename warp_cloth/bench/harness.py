@@ -83,7 +83,7 @@ def simulate(scene_name: str, scene_params: dict, config: Config, frames: int, f
     for _ in range(max(1, repeats)):
         scene = build_scene(scene_name, solver=config.method, solver_options=dict(config.solver_options),
                             substeps=config.substeps, corrections=_corrections(config), frames=frames,
-                            fps=fps, **scene_params)
+                            fps=fps, **{"self_collision": False, **scene_params})
         rec = {}
 
         def on_frame(f, state):

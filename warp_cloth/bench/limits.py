@@ -105,7 +105,8 @@ def run_scene(scene, solver, frames):
         lim.append(StrainLimit(model, 0.0, 1.01))
         return lim[-1]
 
-    st = build_scene(scene, solver=solver, frames=frames, corrections=[make]).run(
+    st = build_scene(scene, solver=solver, frames=frames, corrections=[make],
+                     self_collision=False).run(
         None, quiet=True, energy=False)
     ls = lim[0].stats
     return {"max_strain": st.max_strain, "ms_per_frame": st.ms_per_frame,

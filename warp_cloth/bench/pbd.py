@@ -64,7 +64,8 @@ def bare_vertex_kernel(
 def _final_strain(scene_kwargs, seconds, fps=60.0):
     from ..scenes import hanging
 
-    scene = hanging(frames=max(2, int(round(seconds * fps)) + 1), fps=fps, **scene_kwargs)
+    scene = hanging(frames=max(2, int(round(seconds * fps)) + 1), fps=fps,
+                    **{"self_collision": False, **scene_kwargs})
     stats = scene.run(None, quiet=True, energy=False)
     return stats.final_max_strain, stats.max_strain, stats.substeps
 

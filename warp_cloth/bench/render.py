@@ -90,7 +90,8 @@ def main(argv=None) -> int:
         obj = os.path.join(tmp, "torus.obj")
         n_tris = torus_obj(obj, nu, nv)
         usd = args.keep or os.path.join(tmp, "render_bench.usd")
-        scene = mesh_scene(res=args.res, frames=args.frames, mesh_file=obj, device=args.device)
+        scene = mesh_scene(res=args.res, frames=args.frames, mesh_file=obj, device=args.device,
+                           self_collision=False)
         t0 = time.perf_counter()
         scene.run(usd, quiet=True)
         t_sim = time.perf_counter() - t0

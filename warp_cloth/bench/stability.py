@@ -116,7 +116,7 @@ def simulate(method, k, dt, ratio, res, duration, density=0.15, solver_options=N
     masses = None if ratio == 1 else checker_masses(res, density, ratio)
     scene = build_scene("hanging", solver=method, res=res, stiffness=k, density=density,
                         masses=masses, fps=fps, frames=frames, substeps=substeps,
-                        strain_bound=10.0, solver_options=solver_options)
+                        strain_bound=10.0, solver_options=solver_options, self_collision=False)
     meter = Meter(scene.model)
     energies, strains = [], []
 

@@ -167,7 +167,8 @@ class CollisionStage:
         from .features import FeatureContact
 
         self.features = FeatureContact(model, contact if edges else None)
-        # self-collision (off by default: it costs a broad phase over the cloth every step)
+        # self-collision (off unless asked for: it costs a broad phase over the cloth every step;
+        # the built-in scenes ask for it)
         self.self_collision = None
         if self_collision:
             from .self_collision import SelfCollision
