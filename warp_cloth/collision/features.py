@@ -237,12 +237,9 @@ def box_start_normal(n: wp.vec3, r: wp.vec3, inv0: wp.transform, pose1: wp.trans
     lu = wp.length(u)
     best = wp.vec3(0.0)
     score = float(-1.0)
+    order = wp.vec3i(1, 0, 2)  # y, x, z: the first of near-equal scores stays
     for j in range(3):
-        k = (j + 1) % 3  # y, z, x: then x before z on the ties below
-        if j == 1:
-            k = 0
-        elif j == 2:
-            k = 2
+        k = order[j]
         if depth[k] <= lo + tie:
             axis = wp.vec3(0.0)
             axis[k] = 1.0

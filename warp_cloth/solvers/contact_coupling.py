@@ -591,8 +591,8 @@ def start_overlap_kernel(
     solve; that push is a position correction, not motion: the entry's point leaves with at
     most the normal speed (relative to the surface) of how far it ended beyond the plane,
     ``max(g1, 0) / dt``. Its excess over that, ``(min(g1, 0) - g0) / dt``, is taken from its
-    vertices by their share ``w_j / m_j / sum w_k^2 / m_k``, as its projection moves them, and averaged per
-    vertex weighted by ``|w_j|`` (`velocity_average_kernel`). ``g0``: a vertex entry's ``ref``
+    vertices by their share ``w_j / m_j / sum w_k^2 / m_k``, as its projection moves them, and
+    averaged per vertex weighted by ``|w_j|`` (`velocity_average_kernel`). ``g0``: a vertex entry's ``ref``
     is its start position carried by the obstacle (``g0 = n . ref - offset``), a feature
     entry's is its plane's point at the step's start (``g0 = n . (sum w_j x_start_j - ref)``);
     in both ``g1 - g0`` is the approach relative to the surface. (Four passes, each taking
@@ -631,7 +631,7 @@ def start_overlap_kernel(
 @wp.kernel
 def velocity_average_kernel(v: wp.array(dtype=wp.vec3), acc: wp.array(dtype=wp.vec3),
                             cnt: wp.array(dtype=float)):
-    """``v += acc / cnt`` where ``cnt > 0`` (`contact_velocity_kernel`'s caps, weighted), cleared."""
+    """``v += acc / cnt`` where ``cnt > 0`` (`start_overlap_kernel`'s caps, weighted), cleared."""
     i = wp.tid()
     c = cnt[i]
     if c > 0.0:
