@@ -298,6 +298,9 @@ def cmd_run(args, parser) -> int:
             warnings.showwarning = _show_warning
             stats = scene.run(out, quiet=args.quiet, save_interval=args.save_interval,
                               check_intersections=args.check_intersections)
+    except ValueError as e:  # a start the run refuses (before anything is written)
+        print(f"warp-cloth: {e}", file=sys.stderr)
+        return 2
     except SimulationDiverged as e:
         print(f"warp-cloth: {e}; {out} holds the frames before it", file=sys.stderr)
         if args.preview and os.path.isfile(out):
