@@ -223,8 +223,8 @@ class Scene:
         cloth that passes through itself at the start raises `ValueError` (naming an edge and
         a triangle) before anything is written: self-collision keeps an intersection-free cloth
         so, and cannot make one (such a start held every step at its start: a frozen cloth).
-        Likewise a free vertex that starts deeper inside an obstacle than the contact thickness
-        (`_check_obstacle_start`).
+        Likewise a free vertex that starts inside an obstacle (more than 0.1 mm; on a surface or
+        within the contact thickness of it is fine: `_check_obstacle_start`).
         """
         from .usd import UsdWriter
 

@@ -607,15 +607,11 @@ def start_overlap_kernel(
             continue
         vid = rec.vertex[e]
         w = rec.weight[e]
-        g0 = float(0.0)
+        # the start gap: against the plane's start position (offset - n . ref: how far it moved)
+        g0, den0 = entry_gap(rec, e, x_start, inv_mass)
+        g0 = g0 + rec.offset[e] - wp.dot(n, rec.ref[e])
         if rec.kind[e] == KIND_VERTEX_OBSTACLE:
             g0 = wp.dot(n, rec.ref[e]) - rec.offset[e]
-        else:
-            p0 = wp.vec3(0.0)
-            for j in range(4):
-                if vid[j] >= 0:
-                    p0 = p0 + w[j] * x_start[vid[j]]
-            g0 = wp.dot(n, p0 - rec.ref[e])
         if g0 >= 0.0:
             continue
         excess = (wp.min(g1, 0.0) - g0) * inv_dt
