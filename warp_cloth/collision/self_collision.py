@@ -440,10 +440,14 @@ def revert_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3), v: wp.array(dt
 
 @wp.kernel
 def span_begin_kernel(x: wp.array(dtype=wp.vec3), start: wp.array(dtype=wp.vec3),
-                      steps: wp.array(dtype=int), flag: wp.array(dtype=int)):
+                      steps: wp.array(dtype=int), flag: wp.array(dtype=int),
+                      frame_k: wp.array(dtype=int)):
     """A self-collision span (`SelfCollision.plan`) starts at ``x``: no step taken, no response
-    due."""
+    due; only at a frame's first step if ``frame_k`` (the frame's steps taken) is given."""
     i = wp.tid()
+    if frame_k.shape[0] > 0:
+        if frame_k[0] != 0:
+            return
     start[i] = x[i]
     if i == 0:
         steps[0] = 0
@@ -454,18 +458,23 @@ def span_begin_kernel(x: wp.array(dtype=wp.vec3), start: wp.array(dtype=wp.vec3)
 def span_step_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
                      acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int),
                      start: wp.array(dtype=wp.vec3), reach: float,
-                     reach_share: wp.array(dtype=float), allow: wp.array(dtype=float), last: int,
+                     reach_share: wp.array(dtype=float), allow: wp.array(dtype=float),
+                     frame_k: wp.array(dtype=int), frame_steps: int,
                      steps: wp.array(dtype=int), flag: wp.array(dtype=int)):
     """One more step in the span: the held contacts' correction applied (`SelfCollision.hold`),
-    then the response is due (``flag``) on the frame's last step or once a vertex is farther
-    from its start of the span than its allowance (``allow``, at least ``reach``: one launch for
-    both)."""
+    then the response is due (``flag``) on the frame's last step (``frame_k``: the frame's
+    steps taken, counted here on the device, back to 0 after ``frame_steps``) or once a vertex
+    is farther from its start of the span than its allowance (``allow``, at least ``reach``:
+    one launch for both)."""
     i = wp.tid()
     inelastic_apply(i, x, v, acc, cnt)
     if i == 0:
         steps[0] = steps[0] + 1
-        if last != 0:
+        k = frame_k[0] + 1
+        if k >= frame_steps:
             flag[0] = 1
+            k = 0
+        frame_k[0] = k
     d = x[i] - start[i]
     a = wp.max(reach * reach_share[i], allow[i])
     if wp.dot(d, d) > a * a:
@@ -645,6 +654,29 @@ def round_end_kernel(rec: ContactRecord, violated: wp.array(dtype=int), done: wp
     if done[0] == 0 and flags[0] < rounds:
         flags[1] = 1
     flags[2] = 1 - done[0]
+
+
+@wp.kernel
+def zone_begin_kernel(flags: wp.array(dtype=int), passes: int):
+    """The impact zones' loop starts (`zone_pass_kernel`): ``passes`` passes, then a last
+    detection that only looks."""
+    flags[0] = 0
+    flags[1] = 1
+    flags[2] = wp.where(passes > 0, 1, 0)
+
+
+@wp.kernel
+def zone_pass_kernel(rec: ContactRecord, flags: wp.array(dtype=int), passes: int):
+    """The impact zones' loop (`SelfCollision._fallback`, a `wp.capture_while` on ``flags[1]``;
+    ``flags``: [zone passes run, another detection, this detection grows and moves the zones
+    (a `wp.capture_if`)]). After a detection the loop goes on unless it found no path (a pass
+    that moved nothing leaves the next detection the same paths) or it was the last."""
+    if flags[2] == 0 or rec.count[0] == 0:
+        flags[1] = 0
+        return
+    flags[0] = flags[0] + 1
+    if flags[0] >= passes:
+        flags[2] = 0
 
 
 @wp.kernel
@@ -877,6 +909,7 @@ class SelfCollision:
         self.violated = wp.zeros(2, dtype=int, device=d)  # [violated entries, a pin_held one]
         self._never = wp.zeros(1, dtype=int, device=d)
         self._flags = wp.zeros(3, dtype=int, device=d)  # round_end_kernel
+        self._zone_flags = wp.zeros(3, dtype=int, device=d)  # zone_pass_kernel
         self._no_pairs = wp.zeros(0, dtype=wp.vec2i, device=d)
         self._npairs = wp.zeros(1, dtype=int, device=d)
         self._one = wp.ones(1, dtype=int, device=d)
@@ -884,7 +917,7 @@ class SelfCollision:
         # spans (`plan`): steps per frame (None: a response after every step), steps of the
         # frame taken, and on the device the span's start positions, steps and "respond" flag
         self.frame_steps = None
-        self._k = 0
+        self._frame_k = wp.zeros(1, dtype=int, device=d)  # the frame's steps taken
         self._span = None
         self._reach = 0.0
         self._in_span = False
@@ -968,7 +1001,7 @@ class SelfCollision:
         frame: after every step. The decision is on the device (`wp.capture_if` on a flag that
         `span_step_kernel` sets), so a recorded frame graph stays valid; the frame's end is
         counted on the host, which is why the runner must step whole frames (it does)."""
-        self._k = 0
+        self._frame_k.zero_()
         if motion <= 0 or substeps <= 1:
             self.frame_steps = None
             return
@@ -1010,7 +1043,7 @@ class SelfCollision:
     def restart_span(self) -> None:
         """The next step starts a frame (of a run from a new state: allowances back to
         ``reach``)."""
-        self._k = 0
+        self._frame_k.zero_()
         if self._span is not None:
             self._allow.fill_(-1.0)
             self._full.fill_(1)
@@ -1112,16 +1145,16 @@ class SelfCollision:
             return
         start, steps, flag = self._span
         d = self.device
-        if self._k == 0:  # a frame starts a span (the previous frame ended with a response)
-            launch(span_begin_kernel, len(start), [x_start, start, steps, flag], device=d)
-        self._k += 1
-        last = self._k == self.frame_steps
-        if last:
-            self._k = 0
+        # a frame starts a span (the previous frame ended with a response); the frame's steps
+        # are counted on the device, so every step records the same launches (the runner may
+        # record a few steps as a graph and replay it through the frame: `uniform_steps`)
+        launch(span_begin_kernel, len(start), [x_start, start, steps, flag, self._frame_k],
+               device=d)
         self.hold(state)
         launch(span_step_kernel, len(start), [state.x, state.v, self.acc, self.cnt, start,
                                               self._reach, self._reach_share, self._allow,
-                                              int(last), steps, flag], device=d)
+                                              self._frame_k, self.frame_steps, steps, flag],
+               device=d)
         wp.capture_if(flag, self._span_resolve, state=state, dt=dt)
 
     def _span_resolve(self, state, dt):
@@ -1143,7 +1176,7 @@ class SelfCollision:
             self._gap = self.thickness
         if self.allowances:
             self.clear(state.x)
-        launch(span_begin_kernel, len(start), [state.x, start, steps, flag],
+        launch(span_begin_kernel, len(start), [state.x, start, steps, flag, self._no_int],
                device=self.device)
 
     def hold(self, state) -> None:
@@ -1209,16 +1242,27 @@ class SelfCollision:
         m, d = self.model, self.device
         gap = FAILSAFE_GAP * self.thickness
         self.zones.reset()
-        for _ in range(self.zone_passes):
-            self.record.count.zero_()
-            self.detect(x_start, state.x, gap, self.record, self.done)
-            self.zones.merge(self.record, self.threads)
-            self.zones.move(self.record, x_start, state, dt, self.counters, I_ZONES, steps)
-        self.record.count.zero_()
-        self.detect(x_start, state.x, gap, self.record, self.done)
+        # the passes and the last detection as a device-side loop: a recorded graph holds one
+        # detection, not ``zone_passes + 1`` (recording the explicit hanging scene's frame
+        # graph, 185 steps each with its fall-back: 7.1 s with the passes unrolled, 4.2 s)
+        launch(zone_begin_kernel, 1, [self._zone_flags, self.zone_passes], device=d)
+        wp.capture_while(self._zone_flags[1:2], self._zone_pass, state=state, x_start=x_start,
+                         dt=dt, steps=steps, gap=gap)
         launch(revert_kernel, self.threads,
                [self.record, state.x, state.v, x_start, m.inv_mass, self.counters, I_FALLBACK,
                 self.threads], device=d)
+
+    def _zone_pass(self, state, x_start, dt, steps, gap):
+        self.record.count.zero_()
+        self.detect(x_start, state.x, gap, self.record, self.done)
+        wp.capture_if(self._zone_flags[2:3], self._zone_move, state=state, x_start=x_start,
+                      dt=dt, steps=steps)
+        launch(zone_pass_kernel, 1, [self.record, self._zone_flags, self.zone_passes],
+               device=self.device)
+
+    def _zone_move(self, state, x_start, dt, steps):
+        self.zones.merge(self.record, self.threads)
+        self.zones.move(self.record, x_start, state, dt, self.counters, I_ZONES, steps)
 
     def frame_end(self) -> list:
         """Since the last call: steps that returned the whole cloth to its start, frames whose
