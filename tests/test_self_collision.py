@@ -63,9 +63,21 @@ def test_fold_without_self_collision_passes_through():
     assert max(crossings) > 0  # the check above can fail
 
 
-def test_fold_replays_exactly_when_captured():
-    _, a = _fold("pd", frames=12, capture=True)
-    _, b = _fold("pd", frames=12, capture=False)
+@pytest.mark.parametrize("solver_name", ["pd", "explicit"])
+def test_fold_replays_exactly_when_captured(solver_name):
+    """A recorded frame replays the steps run one by one, bit for bit: PD's frame as one graph;
+    explicit Euler's 97 steps as a graph of `GRAPH_BLOCK` steps replayed 6 times and one of
+    the last step (its steps are uniform: self-collision counts the frame's steps on the
+    device, so its response still comes on every frame's last step)."""
+    from warp_cloth.scene import GRAPH_BLOCK
+
+    _, a = _fold(solver_name, frames=12, capture=True)
+    _, b = _fold(solver_name, frames=12, capture=False)
+    assert a.solver.uniform_steps == (solver_name == "explicit")
+    if solver_name == "explicit":
+        assert a.substeps > GRAPH_BLOCK and a.substeps % GRAPH_BLOCK
+    st = a.collision.stats
+    assert st["self_responses_total"] == b.collision.stats["self_responses_total"] > 0
     np.testing.assert_array_equal(a.state.positions(), b.state.positions())
 
 

@@ -68,6 +68,9 @@ class Solver:
     Attributes:
         capturable: True when a step makes no host decision, so a sequence of steps can be
             recorded as a Warp graph and replayed (the scene runner does this).
+        uniform_steps: True when, besides, every step records the same launches (no host
+            state that changes from one step to the next), so the runner records a few steps
+            and replays them through a frame (`warp_cloth.scene.GRAPH_BLOCK`).
         collision: the `CollisionStage`, or None.
         stats: per-step statistics of the last step (method-specific keys).
     """
@@ -136,6 +139,19 @@ class Solver:
         self._need_start()
         if self.corrections and getattr(self.collision, "self_collision", None) is not None:
             self._self_again_alloc()
+
+    #: True for a method whose steps record the same launches from one step to the next
+    #: (`uniform_steps`)
+    uniform_method = False
+
+    @property
+    def uniform_steps(self) -> bool:
+        """Every step records the same launches: the method's (``uniform_method``), its
+        corrections' and its collision stage's (an ``uniform_steps`` attribute, True if absent,
+        as for ``capturable``)."""
+        parts = [*self.corrections, self.collision]
+        return bool(self.uniform_method and self.capturable and
+                    all(getattr(c, "uniform_steps", True) for c in parts if c is not None))
 
     #: True for a solver whose vertex update is a per-vertex Warp function that the collision
     #: stage can run in its far pass (`fused`); such a solver defines ``vertex_update``

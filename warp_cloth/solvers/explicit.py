@@ -89,6 +89,7 @@ class SymplecticEuler(Solver):
         self.f = wp.zeros(model.num_vertices, dtype=wp.vec3, device=self.device)
 
     fuses_contact = True
+    uniform_method = True
 
     def _advance(self, state, dt):
         m = self.model

@@ -345,6 +345,7 @@ class PositionBased(Solver):
     """
 
     name = "pbd"
+    uniform_method = True
     default_substeps = 64
 
     def __init__(self, model, *, iterations: int = 10, gauss_seidel: bool = False,
