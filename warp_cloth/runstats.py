@@ -5,7 +5,12 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-__all__ = ["RunStats"]
+__all__ = ["Note", "RunStats"]
+
+
+class Note(str):
+    """A solver's frame message that reports no shortfall (`Solver.frame_end`): the runner
+    prints it as a note and does not count its frame in ``RunStats.short_frames``."""
 
 
 @dataclass

@@ -19,7 +19,7 @@ import warp as wp
 
 from .diagnostics import Meter
 from .errors import SimulationDiverged
-from .runstats import RunStats
+from .runstats import Note, RunStats
 
 __all__ = ["Scene", "RunStats"]
 
@@ -324,9 +324,10 @@ class Scene:
                             graph = None  # arrays were reallocated: record the graph again
                 if frame > 0 and hasattr(solver, "frame_end"):
                     msgs = solver.frame_end()
-                    short_frames += bool(msgs)
+                    short_frames += any(not isinstance(msg, Note) for msg in msgs)
                     for msg in msgs if not quiet else ():
-                        bar.note(f"warning: frame {frame}: {msg}")
+                        kind = "note" if isinstance(msg, Note) else "warning"
+                        bar.note(f"{kind}: frame {frame}: {msg}")
                 if checker is not None:
                     k = checker(state.x)
                     if k:

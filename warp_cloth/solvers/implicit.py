@@ -113,6 +113,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..runstats import Note
 from ..util import launch
 from .base import Solver
 from .common import spring_energy64_kernel, spring_stretch64, to_float64_kernel
@@ -739,6 +740,14 @@ class ImplicitEuler(Solver):
             step_tolerance = 0.0 if tolerance is None else max(0.1 * tolerance, 1.2e-7 * reach)
         reach = float(np.abs(model.mesh.vertices).max()) if model.num_vertices else 1.0
         self._float_floor = 1.2e-7 * reach  # float32 rounding of a vertex at |x|
+        # the residual's float32 floor per dt^2 (`residual_floor`): rounding every position by
+        # its float32 step, eps |x|, moves vertex i's residual by up to eps |x| dt^2 K_i / m_i
+        # (K_i: the Gershgorin row sum of its stiffness)
+        from .explicit import SymplecticEuler
+
+        rows, _ = SymplecticEuler.stiffness_row_sums(model)
+        w = np.asarray(model.inverse_masses, dtype=np.float64)
+        self._floor_per_dt2 = self._float_floor * (float((rows * w).max()) if len(w) else 0.0)
         if not (math.isfinite(step_tolerance) and step_tolerance >= 0):
             raise ValueError(f"implicit: step_tolerance must be >= 0 metres, got {step_tolerance!r}")
         self.step_tolerance = float(step_tolerance)
@@ -802,7 +811,8 @@ class ImplicitEuler(Solver):
         self._stats = {}
         # steps whose Newton iteration ended above ``tolerance``, inner solves that stopped at
         # their cap above theirs (host counts: both are known on the host in checked mode)
-        self._short = {"steps": 0, "new": 0, "last": (0.0, 0, False), "inner": 0, "inner_new": 0}
+        self._short = {"steps": 0, "new": 0, "last": (0.0, 0, False), "inner": 0, "inner_new": 0,
+                       "floor": 0, "floor_told": False, "floor_last": (0.0, 0.0, 0.0)}
         self._lazy = None
         self.contact_stiffness = float(contact_stiffness)
         ContactCoupling._check(self.contact_stiffness)
@@ -1062,13 +1072,19 @@ class ImplicitEuler(Solver):
                        "fallback": bool(info.get("fallback", False))}
         self._stats["inner_short"] = inner_short
         if check and not self._stats["converged"]:
-            self._short["steps"] += 1
-            self._short["new"] += 1
-            self._short["last"] = (residual, done, stalled, tol, step_tol)
+            floor = self.residual_floor(dt)
+            if residual <= floor:  # as low as float32 positions can show: not short
+                self._short["floor"] += 1
+                self._short["floor_last"] = (residual, floor, tol)
+            else:
+                self._short["steps"] += 1
+                self._short["new"] += 1
+                self._short["last"] = (residual, done, stalled, tol, step_tol)
         if inner_short:
             self._short["inner"] += inner_short
             self._short["inner_new"] += inner_short
         self._stats["unconverged_steps"] = self._short["steps"]
+        self._stats["floor_steps"] = self._short["floor"]
         self._stats["energy_guard_steps"] = self._guard["extended"]
         self._stats["energy_gain_steps"] = self._guard["gained"]
         self._stats["energy_clamped_steps"] = self._guard["clamped"]
@@ -1183,10 +1199,28 @@ class ImplicitEuler(Solver):
         tol = min(self.tolerance, max(0.2 * g * dt * dt, 1.0e-6))
         return tol, min(self.step_tolerance, max(0.1 * tol, self._float_floor))
 
+    def residual_floor(self, dt: float) -> float:
+        """Metres: the largest change of the residual that rounding the positions to float32
+        can make, ``1.2e-7 max|x_rest| dt^2 max_i K_i / m_i`` (``K_i``: vertex i's Gershgorin
+        stiffness row sum, `SymplecticEuler.stiffness_row_sums`). A step whose residual ends
+        between the tolerance and this floor has converged as far as float32 positions can
+        show: counted in ``stats["floor_steps"]``, said once a run, not reported as short.
+        Measured: the default hanging sheet (32 x 32, 1000 N/m, dt = 1/120 s) has a floor of
+        1.0e-3 m against the 1e-4 m tolerance; 58 of its 118 steps ended at residuals of
+        1.0e-4 to 2.8e-4 m, each warned about as unconverged before."""
+        return self._floor_per_dt2 * float(dt) * float(dt)
+
     def _frame_messages(self) -> list:
         """Unconverged steps and inner solves since the last call (`Solver.frame_end`)."""
         out = []
         sh = self._short
+        if sh["floor"] and not sh["floor_told"]:
+            sh["floor_told"] = True
+            r, floor, tol = sh["floor_last"]
+            out.append(Note(f"implicit: the residual's float32 floor ({floor:.2g} m at this step) is "
+                       f"above the tolerance {tol:.3g} m; steps that end between them (residual "
+                       f"{r:.3g} m here) are as converged as float32 positions can show: "
+                       "counted in stats['floor_steps'], not reported again"))
         if sh["new"]:
             r, k, stalled, tol, step_tol = sh["last"]
             why = (f"its updates fell below step_tolerance {step_tol:.2g} m" if stalled
