@@ -914,8 +914,8 @@ class SelfCollision:
         self._npairs = wp.zeros(1, dtype=int, device=d)
         self._one = wp.ones(1, dtype=int, device=d)
         self._held = wp.zeros(2, dtype=int, device=d)  # `hold`'s violation counts (unused)
-        # spans (`plan`): steps per frame (None: a response after every step), steps of the
-        # frame taken, and on the device the span's start positions, steps and "respond" flag
+        # spans (`plan`): steps per frame (None: a response after every step), and on the
+        # device the frame's steps taken, the span's start positions, steps and "respond" flag
         self.frame_steps = None
         self._frame_k = wp.zeros(1, dtype=int, device=d)  # the frame's steps taken
         self._span = None
@@ -999,8 +999,9 @@ class SelfCollision:
         moved some vertex more than ``motion`` thicknesses since the last response, and always
         on a frame's last step (`CollisionStage`'s ``self_motion``); ``motion`` 0 or one step a
         frame: after every step. The decision is on the device (`wp.capture_if` on a flag that
-        `span_step_kernel` sets), so a recorded frame graph stays valid; the frame's end is
-        counted on the host, which is why the runner must step whole frames (it does)."""
+        `span_step_kernel` sets), so a recorded frame graph stays valid; the frame's steps are
+        counted on the device too (every step records the same launches), from this call or
+        `restart_span` on, which is why the runner must step whole frames (it does)."""
         self._frame_k.zero_()
         if motion <= 0 or substeps <= 1:
             self.frame_steps = None
