@@ -11,7 +11,8 @@ import warp as wp
 
 import warp_cloth
 from warp_cloth import Scene, make_solver
-from warp_cloth.collision import CollisionStage, ObstacleContact, Plane, Sphere
+from warp_cloth.collision import (PENETRATION_TOLERANCE, CollisionStage, ObstacleContact, Plane,
+                                  Sphere)
 from warp_cloth.collision.record import (KIND_EDGE_EDGE, KIND_VERTEX_OBSTACLE,
                                         KIND_VERTEX_TRIANGLE, make_record)
 from warp_cloth.contact_scenes import sheet_model
@@ -842,11 +843,17 @@ def test_box_edges_and_corners_are_sharp_features():
     assert len(e) == 12 and len(vs) == 8
     assert np.all((np.abs(v[e[:, 0]] - v[e[:, 1]]) > 0).sum(axis=1) == 1)  # no face diagonal
     model = ClothModel(TriMesh.grid(8, 8, size=0.5, plane="xz"))
-    stage = CollisionStage(model, [Sphere(0.1, (0, -1, 0)), Box((0.1, 0.2, 0.3), (0, -2, 0))])
+    stage = CollisionStage(model, [Sphere(0.3, (0, -1, 0)), Box((0.1, 0.2, 0.3), (0, -2, 0))])
     f = stage.features
     assert f.active and f.num_vertices == 8 and f.num_edges == 12
     assert set(f.pose_of.numpy().tolist()) == {1}  # the box's pose, after the sphere's
-    assert not CollisionStage(model, [Sphere(0.1, (0, -1, 0))]).features.active
+    # a sphere whose curvature the cells follow (rest diagonal 88 mm over 0.3 m: 3.2 mm, under
+    # the 5 mm thickness) has no feature; over 0.1 m (9.8 mm) its centre is one, with its radius
+    assert not CollisionStage(model, [Sphere(0.3, (0, -1, 0))]).features.active
+    f = CollisionStage(model, [Sphere(0.1, (0, -1, 0)), Box((0.1, 0.2, 0.3), (0, -2, 0))]).features
+    assert f.num_vertices == 9 and f.num_edges == 12
+    assert f.vradius.numpy().tolist() == [pytest.approx(0.1)] + [0.0] * 8
+    assert f.pose_of.numpy().tolist() == [0] + [1] * 8
 
 
 def _count_edges_inside(obstacle, edges, out, fps=60.0):
@@ -884,6 +891,40 @@ def test_fast_box_does_not_cut_through_a_curtain(solver_name):
     stats = scene.run(None, quiet=True, energy=False, on_frame=on_frame)
     assert max(inside) == 0, inside
     assert stats.max_strain < 0.25
+
+
+@pytest.mark.parametrize("case", ["coarse", "thin"])
+@pytest.mark.parametrize("solver_name", ["explicit", "implicit", "pbd", "pd"])
+def test_cloth_triangles_stay_off_a_sphere_too_curved_for_their_cells(case, solver_name):
+    """A sheet whose cells are long for a sphere's curvature: its edges span more than the
+    sphere lets them between vertices held the thickness out. ``coarse``: 8 x 8 cells (1 m) on
+    a 0.1 m sphere; with vertex contact only its triangles went 16-43 mm into the sphere.
+    ``thin``: 16 x 16 on the 0.3 m sphere at a 0.5 mm thickness, 1.2 mm in under implicit
+    Euler while the sphere's entries took their weights at the time of impact (`_sphere_pair`
+    takes them at the step's end). Every sampled point of every triangle stays the thickness
+    (less the vertices' 1e-4 m) from the surface in every frame, and the sheet did rest on it."""
+    from warp_cloth.contact_scenes import drape
+
+    radius, args = {"coarse": (0.1, {"res": 8}),
+                    "thin": (0.3, {"res": 16, "thickness": 0.0005})}[case]
+    h = args.get("thickness", 0.005)
+    center = np.array([0.0, 0.5, 0.0])
+    scene = drape(solver=solver_name, radius=radius, sphere_center=tuple(center), frames=45,
+                  self_collision=False, **args)
+    f = scene.solver.collision.features
+    assert f.active and f.vradius.numpy()[0] == pytest.approx(radius)
+    tris = np.asarray(scene.model.mesh.triangles)
+    g = np.linspace(0.0, 1.0, 7)
+    bary = np.array([(a, b, 1.0 - a - b) for a in g for b in g if a + b <= 1.0 + 1e-9])
+    nearest = []
+
+    def on_frame(frame, st):
+        pts = np.einsum("kj,tjd->tkd", bary, st.positions()[tris])
+        nearest.append(float((np.linalg.norm(pts - center, axis=2) - radius).min()))
+
+    scene.run(None, quiet=True, energy=False, on_frame=on_frame)
+    assert min(nearest) >= h - PENETRATION_TOLERANCE, min(nearest)
+    assert min(nearest) < h + 1e-3  # it rested on the sphere
 
 
 def test_feature_pass_fat_boxes_find_what_fresh_boxes_find(monkeypatch):

@@ -26,8 +26,9 @@ needs, through one interface:
   the far tests (the collision layer knows nothing of the solver; the solver hands it its
   update, `warp_cloth.solvers.explicit`).
 
-Mesh obstacles' sharp features (thin parts, rims, spikes) against the cloth's edges and
-triangles (`warp_cloth.collision.features`) are a second source: vertex-triangle and edge-edge
+Mesh obstacles' sharp features (thin parts, rims, spikes), boxes' edges and corners and spheres
+too curved for the cloth's cells against the cloth's edges and triangles
+(`warp_cloth.collision.features`) are a second source: vertex-triangle and edge-edge
 pairs in the same record with barycentric weights, responded to in ``resolve``. Self-collision
 plugs in the same way.
 """
@@ -71,9 +72,10 @@ class CollisionStage:
             `ObstacleContact` already built on ``model``.
         solve_margin: m, >= 0; how far beyond the thickness a predicted path may pass an
             obstacle and still get a constraint for the solve (default 0.01 m).
-        edges: also keep the cloth's edges and triangles out of the meshes' sharp features
-            (`warp_cloth.collision.features`; default True). False tests vertices only (for a
-            model whose mesh edges are not a surface, e.g. free particles).
+        edges: also keep the cloth's edges and triangles out of the meshes' and boxes' sharp
+            features and of spheres too curved for its cells (`warp_cloth.collision.features`;
+            default True). False tests vertices only (for a model whose mesh edges are not a
+            surface, e.g. free particles).
         self_collision: True (or a `SelfCollision`) to keep the cloth from passing through
             itself (`warp_cloth.collision.self_collision`; default False). Obstacles may then be
             empty.
