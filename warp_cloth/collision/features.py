@@ -843,7 +843,10 @@ class FeatureContact:
         self.p1 = wp.zeros(base, dtype=wp.vec3, device=d)
         ordered = contact.analytic + contact.meshes
         fr = [(ob.friction if ob.friction is not None else contact.friction) for ob in ordered]
-        self.mu_t = wp.array(np.asarray(fr, dtype=np.float32), dtype=float, device=d)
+        # float32 on the device: a coefficient past its range (friction 1e300 is accepted, and
+        # sticks like any large one) is its largest value, not inf with a cast warning
+        self.mu_t = wp.array(np.minimum(np.asarray(fr, dtype=np.float64), 3.0e38)
+                             .astype(np.float32), dtype=float, device=d)
         n = model.num_vertices
         self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
         self.cnt = wp.zeros(n, dtype=int, device=d)
