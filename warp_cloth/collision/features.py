@@ -760,7 +760,7 @@ class FeatureContact:
         rest = _edge_lengths(model)
         # the longest cloth edge, stretched by STRETCH_MARGIN: ridges it cannot cut into by
         # more than half the thickness are skipped
-        self.length = L = STRETCH_MARGIN * float(rest.max()) if len(rest) else 0.0
+        self.length = STRETCH_MARGIN * float(rest.max()) if len(rest) else 0.0
         local, pose_of, src, fedges, fnormals, halves, vhalves, vnormals = ([] for _ in range(8))
         radii = []
         #: record room for the sphere centres' entries (`capacity`)
@@ -777,7 +777,7 @@ class FeatureContact:
         # that spins (a rest diagonal cuts 0.3 mm into it) was no longer carried round under
         # PBD and PD
         L0 = float(rest.max()) if len(rest) else 0.0
-        areas = _triangle_areas(model)
+        areas = model.mesh.triangle_areas()
         for a, radius in spheres:
             if L0 * L0 / (8.0 * radius) - h <= 0.5 * h:
                 continue
@@ -788,7 +788,8 @@ class FeatureContact:
             vnormals.append(np.zeros((1, 3)))
             radii.append(np.full(1, radius))
             # the cloth triangles that fit around it (twice over: layers), at least 64
-            cover = 4.0 * math.pi * (radius + 2.0 * h) ** 2 / max(float(areas.min()), 1e-12)
+            smallest = float(areas.min()) if len(areas) else 1.0
+            cover = 4.0 * math.pi * (radius + 2.0 * h) ** 2 / max(smallest, 1e-12)
             self._sphere_room += int(min(len(areas), max(64, 2.0 * cover)))
         base = len(local)
         for k, (verts, tris), half in shapes:
@@ -821,21 +822,19 @@ class FeatureContact:
         self._stale = wp.ones(1, dtype=int, device=d)
         self._pad = 0.0  # the gap the boxes were widened by (the largest asked for)
         b.update(x, x, 0.0)  # builds the BVHs (allocations: not in a recorded step)
-        self.local = wp.array(np.concatenate(local), dtype=wp.vec3, device=d)
-        self.pose_of = wp.array(np.concatenate(pose_of).astype(np.int32), dtype=int, device=d)
-        self.source = wp.array(np.concatenate(src).astype(np.int32), dtype=int, device=d)
+        self.local = wp.array(_stack(local, (-1, 3), np.float64), dtype=wp.vec3, device=d)
+        self.pose_of = wp.array(_stack(pose_of, (-1,), np.int32), dtype=int, device=d)
+        self.source = wp.array(_stack(src, (-1,), np.int32), dtype=int, device=d)
         self.fedges = wp.array(_stack(fedges, (-1, 2), np.int32), dtype=wp.int32, ndim=2,
                                device=d)
         #: a box's half extents for each of its sharp edges (zeros for a mesh's)
         self.box_half = wp.array(_stack(halves, (-1, 3), np.float32), dtype=wp.vec3, device=d)
         #: each sharp vertex's radius: a sphere's for its centre, 0 for the others
-        self.vradius = wp.array(np.concatenate(radii).astype(np.float32), dtype=float, device=d)
+        self.vradius = wp.array(_stack(radii, (-1,), np.float32), dtype=float, device=d)
         #: ... and for each of its sharp vertices (its corners)
-        self.vbox_half = wp.array(np.concatenate(vhalves).astype(np.float32).reshape(-1, 3),
-                                  dtype=wp.vec3, device=d)
+        self.vbox_half = wp.array(_stack(vhalves, (-1, 3), np.float32), dtype=wp.vec3, device=d)
         #: each sharp vertex's outward normal in its obstacle's frame (`vertex_normals`)
-        self.vnormals = wp.array(np.concatenate(vnormals).astype(np.float32).reshape(-1, 3),
-                                 dtype=wp.vec3, device=d)
+        self.vnormals = wp.array(_stack(vnormals, (-1, 3), np.float32), dtype=wp.vec3, device=d)
         #: each sharp edge's two face normals in its obstacle's frame (zeros for a rim)
         self.face_normals = wp.array(_stack(fnormals, (-1, 2, 3), np.float32), dtype=wp.vec3,
                                      ndim=2, device=d)
@@ -869,7 +868,8 @@ class FeatureContact:
 
     @property
     def capacity(self) -> int:
-        """Record entries this source may need: 8 per sharp vertex and edge (at least 256)."""
+        """Record entries this source may need: 8 per sharp vertex and edge (at least 256),
+        and for each sphere centre the cloth triangles that fit twice round it."""
         if not self.active:
             return 0
         return max(256, 8 * (self.num_vertices + self.num_edges)) + self._sphere_room
@@ -988,14 +988,6 @@ def _stack(parts, shape, dtype) -> np.ndarray:
     if not parts:
         return np.zeros((0,) + tuple(shape[1:]), dtype=dtype)
     return np.concatenate(parts).astype(dtype).reshape(shape)
-
-
-def _triangle_areas(model) -> np.ndarray:
-    v = np.asarray(model.mesh.vertices, dtype=np.float64)
-    t = np.asarray(model.mesh.triangles)
-    if len(t) == 0:
-        return np.ones(1)
-    return 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
 
 
 def _edge_lengths(model):
