@@ -927,6 +927,69 @@ def test_cloth_triangles_stay_off_a_sphere_too_curved_for_their_cells(case, solv
     assert min(nearest) < h + 1e-3  # it rested on the sphere
 
 
+@pytest.mark.parametrize("solver_name", ["explicit", "implicit", "pbd", "pd"])
+def test_friction_on_a_sphere_too_curved_for_the_cells_holds_a_strip(solver_name):
+    """Friction on the features' entries (`FeatureContact.friction`): a strip of 16 x 2 cells
+    of 0.1 m laid off-centre (0.95 m one side, 0.65 m the other) over a 0.1 m sphere rests on
+    the sphere's centre entries, its vertices clear of the sphere. Without friction it slides
+    off and falls within 3 s. With friction 1 (capstan: a half turn holds tensions e^pi = 23
+    to 1) it stays over the sphere for the 3 s; under implicit Euler, whose solve has no
+    friction on these entries and whose friction after the solve changes velocities only, it
+    creeps and falls, but at least twice as late. Before, the entries carried no friction and
+    the strip fell as fast at friction 1 as at 0 (projective dynamics by 3 s)."""
+    from warp_cloth.contact_scenes import drape
+
+    radius = 0.1
+    fell = {}
+    for mu in (0.0, 1.0):
+        scene = drape(solver=solver_name, res=16, shape=(16, 2), size=1.6, center=(0.15, 0.0),
+                      radius=radius, sphere_center=(0.0, 0.5, 0.0), height=0.5 + radius + 0.008,
+                      friction=mu, frames=180, self_collision=False)
+        f = scene.solver.collision.features
+        assert f.active and f.vradius.numpy()[0] == pytest.approx(radius)
+        frames = []
+
+        def on_frame(frame, st, frames=frames):
+            if not frames and st.positions()[:, 1].max() < 0.5 - radius:
+                frames.append(frame)  # every vertex below the sphere: slid off
+
+        stats = scene.run(None, quiet=True, energy=False, on_frame=on_frame)
+        fell[mu] = frames[0] if frames else None
+        if mu > 0.0:
+            assert stats.max_strain < 0.03
+    assert fell[0.0] is not None, fell
+    if solver_name == "implicit":
+        assert fell[1.0] is None or fell[1.0] >= 2 * fell[0.0], fell
+    else:
+        assert fell[1.0] is None, fell
+
+
+@pytest.mark.parametrize("solver_name", ["explicit", "implicit", "pbd", "pd"])
+def test_spinning_sphere_too_curved_for_the_cells_carries_the_sheet(solver_name):
+    """An 8 x 8 sheet (0.6 m) on a 0.12 m sphere spinning at 4 rad/s rests on the sphere's
+    centre entries, its vertices clear of the sphere: friction on those entries, relative to
+    the surface's velocity from the sphere's poses, carries it round. Angular momentum after
+    0.5 s over ``m R (omega R)``, friction 0.6 / none, measured: 1.8 / 0.01, 1.6 / 0.01,
+    0.94 / -0.11, 0.13 / 0.03 (explicit / implicit / PBD / PD); without friction on the
+    entries 0.12, 0.00, 0.22, 0.01 with friction."""
+    from warp_cloth.contact_scenes import spin
+
+    radius, out = 0.12, {}
+    for mu in (0.6, 0.0):
+        scene = spin(res=8, size=0.6, radius=radius, frames=31, friction=mu, start=0.1,
+                     ramp=0.1, spin_rate=4.0, height=0.5 + radius + 0.01, solver=solver_name)
+        f = scene.solver.collision.features
+        assert f.active and f.vradius.numpy()[0] == pytest.approx(radius)
+        scene.run(None, quiet=True, energy=False)
+        c = np.array(scene.contact.obstacles[0].position)
+        r = scene.state.positions() - c
+        out[mu] = float((scene.model.masses[:, None]
+                         * np.cross(r, scene.state.velocities()))[:, 1].sum())
+    scale = scene.model.total_mass * radius * 4.0 * radius
+    assert out[0.6] > 0.08 * scale, out[0.6] / scale
+    assert out[0.6] > 3.0 * abs(out[0.0]), (out[0.6] / scale, out[0.0] / scale)
+
+
 def test_feature_pass_fat_boxes_find_what_fresh_boxes_find(monkeypatch):
     """The feature pass keeps the cloth's boxes widened by `FAT_SLACK` thicknesses and refits
     its BVHs only when a path leaves its box: on a sequence of small moves (refits skipped) and

@@ -13,7 +13,7 @@ The 960-triangle torus of the ``mesh`` scene (tube radius 8 cm) has no such feat
 default 32 x 32 sheet, and pays nothing; a blade or a thin tube does. Boxes are meshes of their
 12 triangles here (edges and corners). A `Sphere` whose curvature a rest-length cloth edge cuts
 into by more than half the thickness gets its centre as a sharp vertex with its radius added to
-the separation (`_sphere_pair`); the others pay nothing. These entries carry no friction.
+the separation (`_sphere_pair`); the others pay nothing.
 
 Each step, on the paths from ``x_start`` to ``x`` (cloth) and from the pose at ``t`` to the pose
 at ``t + dt`` (obstacle):
@@ -32,7 +32,10 @@ at ``t + dt`` (obstacle):
   vertices along its normal by their share ``w_j / m_j / sum_k w_k^2 / m_k`` of the violation
   (Bridson et al. 2002), averaged per vertex, with ``v += dx / dt``; at least `rounds`, then
   on while a round finds an entry violated by more than `RESOLVE_TOL` of the thickness, up to
-  `MAX_ROUNDS` (a device-side loop: no host read). A step that ends its rounds with an entry
+  `MAX_ROUNDS` (a device-side loop: no host read). Before the rounds, Coulomb friction
+  (`friction`) for the entries in contact: the tangential velocity of the entry's point
+  relative to the obstacle's surface there loses up to ``mu`` times the normal impulse.
+  A step that ends its rounds with an entry
   still violated is counted (``stats``) and reported once a frame (`frame_end`). A fixed four
   rounds left a cloth edge on a spike's tip, where two dozen edge-edge entries of nearly
   opposite normals meet, pushed by the average only part of the way: it slid through the spike
@@ -646,6 +649,97 @@ def inelastic_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3
 
 
 @wp.kernel
+def friction_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                    inv_mass: wp.array(dtype=float), poses: wp.array(dtype=wp.transform),
+                    dt: float, slack: float, pressed: wp.array(dtype=wp.vec3),
+                    acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int), num_threads: int):
+    """Coulomb friction of the entries in contact (gap at most ``slack``, friction ``mu > 0``,
+    not `pin_held`), before the response's rounds (Bridson et al. 2002, as the vertex
+    contacts' `response.impulse`): the entry's point's velocity relative to the obstacle's
+    surface there, ``v_r = sum_j w_j v_j - W v_s`` (``W = sum_j w_j``; ``v_s`` the velocity the
+    obstacle's motion over the step gives that point, from its poses: a spinning sphere's
+    surface), loses its tangential part ``v_T`` up to ``mu dv_N`` (all of it: static). The
+    normal impulse ``dv_N`` (a velocity of the point) is the larger of the approach the
+    response's rounds take out (``-v_r . n``: explicit Euler, whose step lets the point fall
+    into the feature) and what contact pushed the point by in the step, ``sum_j w_j n .
+    pressed_j`` (PBD's projections inside its iterations, `project_positions`; implicit
+    Euler's and projective dynamics' penalties at the end of their solve, bounded by the load,
+    `contact_coupling.feature_press_kernel`): a point resting there, held by the solve,
+    approaches no more, though the cloth's weight and tension press it on. The change
+    ``delta`` of the point is shared like the response's correction (``w_j / m_j / sum_k w_k^2
+    / m_k``, so ``sum_j w_j dv_j = delta``), Jacobi-averaged per vertex by
+    `friction_apply_kernel`, which with `FeatureContact.position_friction` also moves the
+    vertex by ``dv dt`` (what that velocity moved it in the step: a sticking point does not
+    creep)."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        mu = rec.friction[e]
+        if mu <= 0.0:
+            continue
+        vid = rec.vertex[e]
+        w = rec.weight[e]
+        g, den = entry_gap(rec, e, x, inv_mass)
+        if g > slack or den <= 0.0:
+            continue
+        if pin_held(vid, w, inv_mass):
+            continue
+        n = rec.normal[e]
+        total = float(0.0)
+        c = wp.vec3(0.0)
+        vc = wp.vec3(0.0)
+        for j in range(4):
+            k = vid[j]
+            if k >= 0:
+                total = total + w[j]
+                c = c + w[j] * x[k]
+                vc = vc + w[j] * v[k]
+        vs = wp.vec3(0.0)
+        src = rec.source[e]
+        if src >= 0 and wp.abs(total) > 1.0e-6:
+            pc = c / total  # the cloth point, carried back through the obstacle's motion
+            local = wp.transform_point(poses[5 * src + 3], pc)
+            p0 = wp.transform_point(poses[5 * src + 0], local)
+            vs = (pc - p0) / dt
+        vr = vc - total * vs
+        vn = wp.dot(vr, n)
+        vt = vr - vn * n
+        lt = wp.length(vt)
+        if lt <= 0.0:
+            continue
+        press = float(0.0)
+        for j in range(4):
+            k = vid[j]
+            if k >= 0:
+                press = press + w[j] * wp.dot(n, pressed[k])
+        dvn = wp.max(-vn, press)
+        scale = wp.min(1.0, mu * dvn / lt)
+        delta = -scale * vt
+        for j in range(4):
+            k = vid[j]
+            if k >= 0 and inv_mass[k] > 0.0:
+                wp.atomic_add(acc, k, (w[j] * inv_mass[k] / den) * delta)
+                wp.atomic_add(cnt, k, 1)
+
+
+@wp.kernel
+def friction_apply_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                          acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int), dt: float,
+                          shift: float, pressed: wp.array(dtype=wp.vec3)):
+    """``v += dv``, ``x += dv dt`` (``dv = acc / cnt``, the Jacobi average of `friction_kernel`'s
+    changes); clears the accumulators and ``pressed``."""
+    i = wp.tid()
+    pressed[i] = wp.vec3(0.0)
+    c = cnt[i]
+    if c > 0:
+        d = acc[i] / float(c)
+        v[i] = v[i] + d
+        x[i] = x[i] + d * (dt * shift)
+        acc[i] = wp.vec3(0.0)
+        cnt[i] = 0
+
+
+@wp.kernel
 def path_left_box_kernel(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                          lo: wp.array(dtype=wp.vec3), hi: wp.array(dtype=wp.vec3),
                          stale: wp.array(dtype=int)):
@@ -675,12 +769,18 @@ def vertex_box_kernel(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), 
 
 @wp.kernel
 def position_apply_kernel(x: wp.array(dtype=wp.vec3), acc: wp.array(dtype=wp.vec3),
-                          cnt: wp.array(dtype=int)):
-    """``x += acc / cnt`` (the Jacobi average) and the accumulators cleared; no velocity."""
+                          cnt: wp.array(dtype=int), pressed: wp.array(dtype=wp.vec3),
+                          inv_dt: float):
+    """``x += acc / cnt`` (the Jacobi average) and the accumulators cleared; no velocity. With a
+    ``pressed`` array, the move over ``dt`` is added to it (the velocity the projections gave
+    the vertex in the step: friction's normal impulse, `FeatureContact.friction`)."""
     i = wp.tid()
     c = cnt[i]
     if c > 0:
-        x[i] = x[i] + acc[i] / float(c)
+        d = acc[i] / float(c)
+        x[i] = x[i] + d
+        if pressed.shape[0] > 0:
+            pressed[i] = pressed[i] + d * inv_dt
         acc[i] = wp.vec3(0.0)
         cnt[i] = 0
 
@@ -772,10 +872,10 @@ class FeatureContact:
         # surface, not only the vertices. Measured: an 8 x 8 sheet (1 m) dropped on a 0.1 m
         # sphere, its triangles 17 / 16 / 43 / 38 mm inside the sphere (explicit / implicit /
         # PBD / PD) with vertex contact only; none closer than 4.95 mm with these entries.
-        # The entries carry no friction and lift the triangle's vertices off their own contacts,
-        # which carry it: with the stretch margin, the 10 x 10 sheet (0.8 m) on a 0.3 m sphere
-        # that spins (a rest diagonal cuts 0.3 mm into it) was no longer carried round under
-        # PBD and PD
+        # The entries lift the triangle's vertices off their own contacts: their friction
+        # (`friction`) carries the sheet then. Before it had any, with the stretch margin, the
+        # 10 x 10 sheet (0.8 m) on a 0.3 m sphere that spins (a rest diagonal cuts 0.3 mm into
+        # it) was no longer carried round under PBD and PD
         L0 = float(rest.max()) if len(rest) else 0.0
         areas = model.mesh.triangle_areas()
         for a, radius in spheres:
@@ -846,9 +946,20 @@ class FeatureContact:
         # sticks like any large one) is its largest value, not inf with a cast warning
         self.mu_t = wp.array(np.minimum(np.asarray(fr, dtype=np.float64), 3.0e38)
                              .astype(np.float32), dtype=float, device=d)
+        #: whether `friction` also moves the vertices by the velocity it takes out times dt
+        #: (so a sticking point does not creep); a solver that takes the entries into its
+        #: solve sets it False (`contact_coupling.ContactCoupling`)
+        self.position_friction = True
+        #: whether any obstacle with features has friction (`friction` costs nothing if not)
+        self.has_friction = bool(np.any(np.asarray(fr, dtype=np.float64)[
+            np.unique(_stack(src, (-1,), np.int64))] > 0.0))
         n = model.num_vertices
         self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
         self.cnt = wp.zeros(n, dtype=int, device=d)
+        #: the velocity the solve's contact terms (`contact_coupling.feature_press_kernel`) or
+        #: the in-iteration projections (`project_positions`) gave each vertex along the
+        #: features' normals in this step: `friction`'s normal impulse (cleared there)
+        self.pressed = wp.zeros(n if self.has_friction else 0, dtype=wp.vec3, device=d)
         # how far the entries' planes moved, per vertex (`inelastic_apply_kernel`): only when an
         # obstacle moves
         self.moved = wp.zeros(n if getattr(contact, "moving", False) else 0, dtype=wp.vec3,
@@ -914,7 +1025,7 @@ class FeatureContact:
         b.tri_bvh.refit()
         b.edge_bvh.refit()
 
-    def project_positions(self, x, x_start, record, first: int = 0) -> None:
+    def project_positions(self, x, x_start, record, first: int = 0, dt: float = 0.0) -> None:
         """One Jacobi round of the record's entries from ``first`` on, positions only (inside a
         position-based solver's iterations, whose velocity update follows the positions); an
         entry that started inside is held where it started (`jacobi_project_kernel` with
@@ -925,7 +1036,9 @@ class FeatureContact:
         launch(jacobi_project_kernel, self.threads,
                [record, first, x, m.inv_mass, self.acc, self.cnt, self._scratch,
                 RESOLVE_TOL * self.thickness, self.threads, self._no_moved, x_start], device=d)
-        launch(position_apply_kernel, m.num_vertices, [x, self.acc, self.cnt], device=d)
+        press = self.pressed if self.has_friction and dt > 0.0 else self._no_moved
+        launch(position_apply_kernel, m.num_vertices,
+               [x, self.acc, self.cnt, press, 1.0 / dt if dt > 0.0 else 0.0], device=d)
 
     def respond(self, state, dt: float, record, first: int = 0) -> None:
         """Jacobi rounds over the record's entries from ``first`` on: at least `rounds`, then
@@ -938,6 +1051,20 @@ class FeatureContact:
                device=self.device)
         wp.capture_while(self._flags[0:1], self._round, state=state, dt=dt, record=record,
                          first=first)
+
+    def friction(self, state, dt: float, record, slack: float) -> None:
+        """Coulomb friction of the record's entries within ``slack`` of their planes
+        (`friction_kernel`, then `friction_apply_kernel`), before `respond`."""
+        if not self.active or not self.has_friction:
+            return
+        d, m = self.device, self.model
+        launch(friction_kernel, self.threads,
+               [record, state.x, state.v, m.inv_mass, self.contact.poses,
+                dt, slack, self.pressed, self.acc, self.cnt, self.threads],
+               device=d)
+        launch(friction_apply_kernel, m.num_vertices,
+               [state.x, state.v, self.acc, self.cnt, dt, 1.0 if self.position_friction else 0.0,
+                self.pressed], device=d)
 
     def _round(self, state, dt, record, first):
         d, m = self.device, self.model

@@ -280,7 +280,11 @@ class CollisionStage:
         again = False
         if self.pair_record is not None:
             self.pair_record.count.zero_()
-            self.features.detect(x_start, state.x, 0.0, self.pair_record)
+            # with friction, within the vertex contacts' slack: a point the solve (or PBD's
+            # iterations) left resting on a feature, at the thickness, is in contact for it
+            margin = self.contact.slack if self.features.has_friction else 0.0
+            self.features.detect(x_start, state.x, margin, self.pair_record)
+            self.features.friction(state, dt, self.pair_record, self.contact.slack)
             self.features.respond(state, dt, self.pair_record)
             again = True
         if again and self.contact is not None:
@@ -326,7 +330,7 @@ class CollisionStage:
         if self.contact is not None:
             self.contact.project_positions(x, x_start, dt, time)
             if self.pair_record is not None:
-                self.features.project_positions(x, x_start, self.pair_record)
+                self.features.project_positions(x, x_start, self.pair_record, dt=dt)
 
     # a solver's vertex update fused with the far tests
     @property
