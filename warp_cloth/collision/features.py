@@ -947,8 +947,9 @@ class FeatureContact:
         self.mu_t = wp.array(np.minimum(np.asarray(fr, dtype=np.float64), 3.0e38)
                              .astype(np.float32), dtype=float, device=d)
         #: whether `friction` also moves the vertices by the velocity it takes out times dt
-        #: (so a sticking point does not creep); a solver that takes the entries into its
-        #: solve sets it False (`contact_coupling.ContactCoupling`)
+        #: (so a sticking point does not creep): explicit Euler. Implicit Euler and projective
+        #: dynamics (`contact_coupling.ContactCoupling`) and PBD (`CollisionStage.
+        #: begin_iterations`) set it False
         self.position_friction = True
         #: whether any obstacle with features has friction (`friction` costs nothing if not)
         self.has_friction = bool(np.any(np.asarray(fr, dtype=np.float64)[
