@@ -688,12 +688,14 @@ def friction_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3), v: wp.array(
         total = float(0.0)
         c = wp.vec3(0.0)
         vc = wp.vec3(0.0)
+        press = float(0.0)
         for j in range(4):
             k = vid[j]
             if k >= 0:
                 total = total + w[j]
                 c = c + w[j] * x[k]
                 vc = vc + w[j] * v[k]
+                press = press + w[j] * wp.dot(n, pressed[k])
         vs = wp.vec3(0.0)
         src = rec.source[e]
         if src >= 0 and wp.abs(total) > 1.0e-6:
@@ -707,11 +709,6 @@ def friction_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3), v: wp.array(
         lt = wp.length(vt)
         if lt <= 0.0:
             continue
-        press = float(0.0)
-        for j in range(4):
-            k = vid[j]
-            if k >= 0:
-                press = press + w[j] * wp.dot(n, pressed[k])
         dvn = wp.max(-vn, press)
         scale = wp.min(1.0, mu * dvn / lt)
         delta = -scale * vt
@@ -941,19 +938,18 @@ class FeatureContact:
         self.p0 = wp.zeros(base, dtype=wp.vec3, device=d)
         self.p1 = wp.zeros(base, dtype=wp.vec3, device=d)
         ordered = contact.analytic + contact.meshes
-        fr = [(ob.friction if ob.friction is not None else contact.friction) for ob in ordered]
+        fr = np.array([(ob.friction if ob.friction is not None else contact.friction)
+                       for ob in ordered], dtype=np.float64)
         # float32 on the device: a coefficient past its range (friction 1e300 is accepted, and
         # sticks like any large one) is its largest value, not inf with a cast warning
-        self.mu_t = wp.array(np.minimum(np.asarray(fr, dtype=np.float64), 3.0e38)
-                             .astype(np.float32), dtype=float, device=d)
+        self.mu_t = wp.array(np.minimum(fr, 3.0e38).astype(np.float32), dtype=float, device=d)
         #: whether `friction` also moves the vertices by the velocity it takes out times dt
         #: (so a sticking point does not creep): explicit Euler. Implicit Euler and projective
         #: dynamics (`contact_coupling.ContactCoupling`) and PBD (`CollisionStage.
         #: begin_iterations`) set it False
         self.position_friction = True
         #: whether any obstacle with features has friction (`friction` costs nothing if not)
-        self.has_friction = bool(np.any(np.asarray(fr, dtype=np.float64)[
-            np.unique(_stack(src, (-1,), np.int64))] > 0.0))
+        self.has_friction = bool((fr[_stack(src, (-1,), np.int64)] > 0.0).any())
         n = model.num_vertices
         self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
         self.cnt = wp.zeros(n, dtype=int, device=d)

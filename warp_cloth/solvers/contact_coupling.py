@@ -719,6 +719,10 @@ class ContactCoupling:
             # the sliding points (a strip held over a small sphere: 13.5 % strain under
             # implicit Euler, 9.3 % under projective dynamics, against 1.3 % under explicit)
             stage.features.position_friction = False
+        #: whether the features' friction takes its normal impulse from this solve
+        #: (`feature_press_kernel`, `end_step`)
+        self._feature_friction = bool(self._feature_pairs
+                                      and getattr(stage.features, "has_friction", False))
         #: whether `matvec_add` applies the feature pairs' off-diagonal blocks (Newton: yes;
         #: projective dynamics sets False, its local step writes lumped diagonal blocks)
         self.pairs_in_operator = True
@@ -908,11 +912,10 @@ class ContactCoupling:
         launch(normal_force_kernel, self.threads,
                [self.record, x, m.inv_mass, self.kappa / (dt * dt), self.threads,
                 self.sources, f, self.lam], device=self.device)
-        feats = getattr(self.stage, "features", None)
-        if self._feature_pairs and feats.has_friction:
+        if self._feature_friction:
             launch(feature_press_kernel, self.threads,
                    [self.record, x, m.inv_mass, self.kappa / (dt * dt), dt, self.threads, f,
-                    feats.pressed], device=self.device)
+                    self.stage.features.pressed], device=self.device)
         if self.sag_cap > 0.0:
             self.sag.zero_()
             launch(sag_update_kernel, self.threads,
