@@ -392,7 +392,8 @@ def test_bad_options(opts, match):
 def test_cli_runs_implicit_end_to_end(tmp_path):
     from warp_cloth.cli import main
 
-    for lin, bend in (("jacobi", "springs"), ("chebyshev", "dihedral"), ("cg", "quadratic")):
+    for lin, bend in (("jacobi", "springs"), ("chebyshev", "dihedral"), ("cg", "quadratic"),
+                      ("cholesky", "dihedral")):
         out = tmp_path / f"{lin}.usd"
         rc = main(["run", "hanging", "--solver", "implicit", "--linear", lin, "--newton-iterations",
                    "3", "--bending", bend, "--bend-stiffness", "0.001", "--res", "6", "--frames",

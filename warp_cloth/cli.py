@@ -151,8 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--bend-stiffness", type=_nonneg_float, default=None,
                    help="N/m (springs) or N m (dihedral, quadratic)")
     r.add_argument("--damping", type=_nonneg_float, default=None, help="velocity damping, 1/s")
-    r.add_argument("--linear", choices=["jacobi", "chebyshev", "cg"], default=None,
-                   help="inner linear solver (implicit, pd)")
+    r.add_argument("--linear", choices=["jacobi", "chebyshev", "cg", "cholesky"], default=None,
+                   help="inner linear solver (implicit, pd; cholesky: implicit only)")
     r.add_argument("--newton-iterations", type=_positive_int, default=None, help="implicit")
     r.add_argument("--iterations", type=_positive_int, default=None, help="pbd, pd")
     r.add_argument("--gauss-seidel", action="store_true", default=None, help="pbd: coloured GS")

@@ -92,12 +92,14 @@ def checker_masses(res: int, density: float, ratio: float, size: float = 1.0):
 
 
 #: implicit Euler with another inner solver, as a method of its own (``--methods``)
-IMPLICIT_VARIANTS = {"implicit-jacobi": "jacobi", "implicit-chebyshev": "chebyshev"}
+IMPLICIT_VARIANTS = {"implicit-jacobi": "jacobi", "implicit-chebyshev": "chebyshev",
+                     "implicit-cholesky": "cholesky"}
 
 
 def split_method(method, solver_options=None):
     """``(solver, options)`` of a map method: ``implicit-jacobi`` is implicit Euler with the
-    Jacobi inner solve (and ``implicit-chebyshev`` with Chebyshev); others are solver names."""
+    Jacobi inner solve (``implicit-chebyshev``, ``implicit-cholesky`` with those); others are
+    solver names."""
     if method in IMPLICIT_VARIANTS:
         return "implicit", {**(solver_options or {}), "linear": IMPLICIT_VARIANTS[method]}
     return method, solver_options
@@ -217,8 +219,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="warp-cloth bench stability", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--methods", default=None,
-                   help="comma list (default: all available); implicit-jacobi and "
-                        "implicit-chebyshev: implicit Euler with that inner solve")
+                   help="comma list (default: all available); implicit-jacobi, "
+                        "implicit-chebyshev and implicit-cholesky: implicit Euler with that "
+                        "inner solve")
     p.add_argument("--res", type=int, default=None, help="cells per side (default 8, quick 6)")
     p.add_argument("--duration", type=float, default=None,
                    help="simulated seconds (default 1, quick 0.25)")

@@ -625,6 +625,9 @@ LINEAR_DEFAULTS = {
     "cg": (200, 1e-1),
     "jacobi": (400, 1e-3),
     "chebyshev": (200, 1e-3),
+    # CG preconditioned by the banded Cholesky factor of the Newton matrix (`band`): one or two
+    # iterations when every term is in the band, so a tight tolerance costs little
+    "cholesky": (20, 1e-3),
 }
 
 
@@ -647,9 +650,12 @@ class ImplicitEuler(Solver):
             `frame_end` (the scene runner prints a warning with the frame), and so is an inner
             solve that stops at its cap above its tolerance (``stats["inner_short_total"]``).
             ``tolerance=None`` makes no convergence claim.
-        linear: inner solver, ``"cg"``, ``"jacobi"`` or ``"chebyshev"``.
+        linear: inner solver, ``"cg"``, ``"jacobi"``, ``"chebyshev"`` or ``"cholesky"`` (CG
+            preconditioned by a banded Cholesky factor of each Newton matrix, float64:
+            `warp_cloth.solvers.band`; for stiff, light cloth at large steps, where block-Jacobi
+            CG leaves Newton's directions far off; a serial factorisation, slower per step).
         linear_iterations: maximum inner iterations per Newton iteration (default 200 for CG and
-            Chebyshev, 400 for Jacobi).
+            Chebyshev, 400 for Jacobi, 20 for cholesky).
         linear_tolerance: relative residual ``||b - A dx||/||b||`` that ends an inner solve
             (the inexact-Newton forcing term; default 1e-1 for CG, 1e-3 for Jacobi and
             Chebyshev); ``None`` runs ``linear_iterations`` (no host reads).
@@ -750,8 +756,8 @@ class ImplicitEuler(Solver):
         # Jacobi and Chebyshev steps gained 20 and 165 J on a 0.15 kg sheet)
         cg_its, cg_tol = LINEAR_DEFAULTS["cg"]
         self._guard_linear = (make_linear_solver("cg", iterations=cg_its, tolerance=cg_tol)
-                              if energy_guard and tolerance is not None and linear != "cg"
-                              else None)
+                              if energy_guard and tolerance is not None
+                              and linear not in ("cg", "cholesky") else None)
         self.newton_iterations = int(newton_iterations)
         self.tolerance = tolerance
         if step_tolerance is None:
@@ -806,7 +812,7 @@ class ImplicitEuler(Solver):
         # (a Jacobi-type inner solve that gains energy restarts the step with CG and its own
         # full budget: room for both)
         self._k_total = self.newton_iterations * (1 + ENERGY_GUARD_ROUNDS * self.energy_guard) * (
-            2 if self.energy_guard and linear != "cg" else 1)
+            2 if self._guard_linear is not None else 1)
         self._energy = wp.zeros(2, dtype=wp.float64, device=d)
         self._energy32 = wp.zeros(1, dtype=wp.float32, device=d)
         # 1 while this step's contact records are empty (`contact_free_kernel`): a collision
@@ -893,6 +899,8 @@ class ImplicitEuler(Solver):
             self._coupling.add_newton(x, self.b, A.diag, self._dt)
             vb = (self._coupling.nblock, 1)
         if hessian:
+            if self.linear_name == "cholesky":
+                self.linear.invalidate()  # a new Newton matrix: factored before its solve
             for t in self.implicit_terms:
                 t.add_diagonal(A.diag)
             launch(finish_system_kernel, n,

@@ -361,7 +361,12 @@ LINEAR_SOLVERS = {"jacobi": JacobiSolver, "chebyshev": ChebyshevSolver, "cg": CG
 
 
 def make_linear_solver(name: str, **options):
-    """Build ``"jacobi"``, ``"chebyshev"`` or ``"cg"`` with its keyword options."""
+    """Build ``"jacobi"``, ``"chebyshev"`` or ``"cg"`` with its keyword options (and
+    ``"cholesky"``, `band.CholeskyCGSolver`, for implicit Euler's operator)."""
+    if name == "cholesky":
+        from .band import CholeskyCGSolver
+
+        return CholeskyCGSolver(**options)
     if name not in LINEAR_SOLVERS:
         raise ValueError(f"unknown linear solver {name!r}; choose one of {sorted(LINEAR_SOLVERS)}")
     return LINEAR_SOLVERS[name](**options)

@@ -1,0 +1,125 @@
+"""The banded Cholesky preconditioner of implicit Euler's Newton solve (`solvers/band.py`,
+``linear="cholesky"``)."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warp_cloth.scenes import hanging_model
+from warp_cloth.solvers.band import BandFactor, CholeskyCGSolver, band_width, rcm_order
+from warp_cloth.solvers.implicit import ImplicitEuler
+from warp_cloth.solvers.linear import dense_matrix
+
+
+def _grid_edges(nx, ny):
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    e = [np.stack([idx[:, :-1].ravel(), idx[:, 1:].ravel()], 1),
+         np.stack([idx[:-1, :].ravel(), idx[1:, :].ravel()], 1),
+         np.stack([idx[:-1, :-1].ravel(), idx[1:, 1:].ravel()], 1)]
+    return np.concatenate(e)
+
+
+def test_rcm_finds_a_narrow_band_in_a_shuffled_grid(rng):
+    """A 12 x 30 grid graph numbered at random has a bandwidth of about the vertex count; RCM's
+    order is a permutation with a band of about one short row (a grid's levels)."""
+    nx, ny = 12, 30
+    e = _grid_edges(nx, ny)
+    shuffle = rng.permutation(nx * ny)
+    e = shuffle[e]
+    perm = rcm_order(nx * ny, e[:, 0], e[:, 1])
+    assert sorted(perm.tolist()) == list(range(nx * ny))
+    assert band_width(np.arange(nx * ny), e[:, 0], e[:, 1]) > 100
+    assert band_width(perm, e[:, 0], e[:, 1]) <= 2 * (nx + 1)
+
+
+def test_rcm_orders_every_component():
+    """Two disjoint paths: every vertex placed once, each path contiguous (width 1)."""
+    e = np.array([[0, 2], [2, 4], [1, 3], [3, 5]])
+    perm = rcm_order(6, e[:, 0], e[:, 1])
+    assert sorted(perm.tolist()) == list(range(6))
+    assert band_width(perm, e[:, 0], e[:, 1]) == 1
+
+
+def _system(bending="quadratic"):
+    model = hanging_model(res=6, stiffness=1e6, bending=bending, bend_stiffness=1e-3)
+    state = model.state()
+    solver = ImplicitEuler(model, linear="cholesky")
+    A, b = solver.newton_system(state, 1 / 30)
+    return model, A, b
+
+
+@pytest.mark.parametrize("bending", ["quadratic", "none"])
+def test_one_preconditioned_iteration_solves_the_newton_system(bending):
+    """Springs and quadratic bending (folded scalar entries) all lie in the band, so the factor
+    is the matrix's: one CG iteration solves the stiff (k dt^2/m ~ 1e8) Newton system to float32
+    accuracy, where block-Jacobi CG is still far off after 20."""
+    model, A, b = _system(bending)
+    D = dense_matrix(A)
+    free = np.repeat(model.inverse_masses > 0, 3)
+    bn = b.numpy().astype(np.float64).ravel()
+    exact = np.zeros_like(bn)
+    exact[free] = np.linalg.solve(D[np.ix_(free, free)], bn[free])
+    x = wp.zeros_like(b)
+    solver = CholeskyCGSolver(iterations=1, tolerance=None)
+    solver.solve(A, b, x)
+    err = np.abs(x.numpy().ravel() - exact).max() / np.abs(exact).max()
+    assert err < 1e-4, err
+    assert solver.fallbacks == 0
+    from warp_cloth.solvers.linear import CGSolver
+
+    y = wp.zeros_like(b)
+    CGSolver(iterations=20, tolerance=None).solve(A, b, y)
+    assert np.abs(y.numpy().ravel() - exact).max() / np.abs(exact).max() > 100 * err
+
+
+def test_an_indefinite_matrix_falls_back_to_block_jacobi_and_is_counted():
+    """A non-positive pivot (here one diagonal block made negative) sets the device flag: the
+    applications use ``D^-1`` instead (finite result), and each is counted."""
+    model, A, b = _system()
+    i = int(np.flatnonzero(model.inverse_masses > 0)[0])
+    d = A.diag.numpy()
+    d[i] = -np.eye(3, dtype=np.float32)
+    A.diag.assign(d)
+    x = wp.zeros_like(b)
+    solver = CholeskyCGSolver(iterations=3, tolerance=None)
+    solver.solve(A, b, x)
+    assert solver.fallbacks == 4  # the start and three iterations
+    assert np.all(np.isfinite(x.numpy()))
+
+
+def test_a_band_too_large_is_refused_with_the_way_out():
+    """A mesh whose band would not fit gets a clear error naming linear='cg'."""
+    import warp_cloth.solvers.band as band
+
+    model, A, b = _system()
+    old = band.MAX_BAND_ENTRIES
+    band.MAX_BAND_ENTRIES = 100
+    try:
+        with pytest.raises(ValueError, match="linear='cg'"):
+            BandFactor(A)
+    finally:
+        band.MAX_BAND_ENTRIES = old
+
+
+def test_newton_with_the_factor_converges_in_few_inner_iterations():
+    """A hanging 6 x 6 sheet at k = 1e3 N/m, one step of 1/30 s: with exact directions Newton
+    meets its tolerance, each solve in one or two CG iterations."""
+    model = hanging_model(res=6, stiffness=1e3)
+    state = model.state()
+    solver = ImplicitEuler(model, linear="cholesky", newton_iterations=20)
+    for _ in range(3):
+        solver.step(state, 1 / 30)
+        st = solver.stats
+        assert st["residual"] < solver.tolerance, st
+        assert st["inner_iterations"] <= 2 * st["newton_iterations"], st
+
+
+def test_the_stability_map_and_the_pd_solver_name_it():
+    """``implicit-cholesky`` is a stability-map method (implicit Euler with this inner solve);
+    projective dynamics, whose operator has no spring blocks, refuses it by name."""
+    from warp_cloth.bench.stability import split_method
+    from warp_cloth.solvers.projective import ProjectiveDynamics
+
+    assert split_method("implicit-cholesky") == ("implicit", {"linear": "cholesky"})
+    with pytest.raises(ValueError, match="linear must be one of"):
+        ProjectiveDynamics(hanging_model(res=4), linear="cholesky")

@@ -1,0 +1,362 @@
+"""Conjugate gradient preconditioned by a banded Cholesky factor of the Newton matrix
+(``linear="cholesky"`` of `ImplicitEuler`).
+
+Why: block-Jacobi CG needs about ``sqrt(cond)`` iterations, and stiff, light cloth makes the
+Newton matrix ``M/dt^2 + K`` very ill-conditioned (``k dt^2 / m`` ~ 5e6 on the default 32 x 32
+sheet at k = 1e6 N/m and one step a frame at 30 fps): 200 CG iterations per Newton iteration
+leave every step far from converged, the strain several times the converged step's and the sheet
+falling too slowly. A direct factor of the same matrix makes CG converge in one or two
+iterations, so Newton converges as Newton does.
+
+How: the vertices are renumbered once by reverse Cuthill-McKee (`rcm_order`, host, over the
+springs' and folded terms' graph: a grid keeps its row-by-row order, bandwidth about one row),
+so every spring and folded block lies within ``b`` vertices of the diagonal. Each factorisation
+gathers the matrix's lower band (scalar, ``B = 3 b + 2`` wide, float64) from the operator
+(`band_assemble_kernel`: the diagonal blocks ``diag`` as the operator keeps them, the springs'
+blocks ``-H_e`` and the folded scalar entries), then factors it in place
+(`band_factor_kernel`, float64: float32 loses everything at these condition numbers). Terms the
+band does not hold (the off-diagonal blocks of contact pairs and self-contacts, dihedral
+bending's) are left to CG, which still sees the whole operator; their diagonal blocks are in
+``diag``, so the preconditioner stays symmetric positive definite.
+
+Cost (one thread, float64): factorising ~ ``3 n B^2 / 2`` multiply-adds, each application
+``4 * 3 n B``; ``n = 1,089`` vertices, ``B = 107``: 1.9e7 and 1.4e6. The factor kernel is
+serial (one thread, on "cuda" too, where it runs unchanged but slowly: a GPU user wants ``cg``).
+A factorisation that meets a non-positive pivot (an indefinite matrix: ``exact_hessian=True``)
+sets a flag on the device and the applications fall back to block Jacobi (counted,
+``factor_failures``); nothing is read back during a solve, so a step stays capturable.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from ..util import launch
+from .linear import CGSolver, _cg_direction_kernel, _cg_start_kernel, _cg_update_kernel, \
+    spring_block_matrix
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = ["rcm_order", "band_width", "CholeskyCGSolver", "MAX_BAND_ENTRIES"]
+
+#: the largest band (rows x width, float64 entries) a factor may take: 64 M entries = 512 MB
+MAX_BAND_ENTRIES = 1 << 26
+
+
+def _sym_csr(n: int, rows: np.ndarray, cols: np.ndarray):
+    """Symmetric adjacency (no self loops, duplicates kept) as ``(indptr, indices)``."""
+    keep = rows != cols
+    r = np.concatenate([rows[keep], cols[keep]]).astype(np.int64)
+    c = np.concatenate([cols[keep], rows[keep]]).astype(np.int64)
+    order = np.lexsort((c, r))
+    r, c = r[order], c[order]
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    np.add.at(indptr, r + 1, 1)
+    return np.cumsum(indptr), c
+
+
+def _bfs_levels(start: int, indptr, indices, degree, seen):
+    """Breadth-first order from ``start`` (neighbours by increasing degree) over unseen
+    vertices, and the last level."""
+    order, level = [start], [start]
+    seen[start] = True
+    while True:
+        nxt = []
+        for v in level:
+            nb = indices[indptr[v]:indptr[v + 1]]
+            nb = np.unique(nb[~seen[nb]])
+            if len(nb):
+                nb = nb[np.argsort(degree[nb], kind="stable")]
+                seen[nb] = True
+                nxt.extend(int(u) for u in nb)
+        if not nxt:
+            return order, level
+        order.extend(nxt)
+        level = nxt
+
+
+def rcm_order(n: int, rows, cols) -> np.ndarray:
+    """Reverse Cuthill-McKee order of the graph with edges ``(rows[k], cols[k])``: ``perm`` with
+    ``perm[p]`` the vertex placed ``p``-th. Each component starts from a pseudo-peripheral
+    vertex (two breadth-first sweeps from its least-connected vertex)."""
+    rows = np.asarray(rows, dtype=np.int64).ravel()
+    cols = np.asarray(cols, dtype=np.int64).ravel()
+    indptr, indices = _sym_csr(n, rows, cols)
+    degree = np.diff(indptr)
+    placed = np.zeros(n, dtype=bool)
+    out = []
+    for s in np.argsort(degree, kind="stable"):
+        if placed[s]:
+            continue
+        start = int(s)
+        for _ in range(2):  # a far vertex of low degree: a narrower band
+            seen = placed.copy()
+            _, last = _bfs_levels(start, indptr, indices, degree, seen)
+            start = int(min(last, key=lambda v: (degree[v], v)))
+        order, _ = _bfs_levels(start, indptr, indices, degree, placed)
+        out.extend(order)
+    return np.asarray(out[::-1], dtype=np.int32)
+
+
+def band_width(perm: np.ndarray, rows, cols) -> int:
+    """Largest ``|position(i) - position(j)|`` over the edges in the order ``perm``."""
+    rows = np.asarray(rows, dtype=np.int64).ravel()
+    cols = np.asarray(cols, dtype=np.int64).ravel()
+    if len(rows) == 0:
+        return 0
+    iperm = np.empty(len(perm), dtype=np.int64)
+    iperm[perm] = np.arange(len(perm))
+    return int(np.abs(iperm[rows] - iperm[cols]).max())
+
+
+@wp.kernel
+def band_assemble_kernel(perm: wp.array(dtype=wp.int32), iperm: wp.array(dtype=wp.int32),
+                         diag: wp.array(dtype=wp.mat33), free: wp.array(dtype=float),
+                         offsets: wp.array(dtype=wp.int32), other: wp.array(dtype=wp.int32),
+                         coef: wp.array(dtype=wp.vec4), s_offsets: wp.array(dtype=wp.int32),
+                         s_cols: wp.array(dtype=wp.int32), s_vals: wp.array(dtype=float),
+                         width: int, band: wp.array2d(dtype=wp.float64)):
+    """The three scalar rows of the vertex placed ``p``-th, lower band only
+    (``band[r, r - c] = A[r, c]``): its diagonal block, ``-H_e`` for each spring to an earlier
+    free vertex, the folded scalar entries ``S_ij I``; a pinned vertex's rows are the identity."""
+    p = wp.tid()
+    i = perm[p]
+    for a in range(3):
+        for j in range(width + 1):
+            band[3 * p + a, j] = wp.float64(0.0)
+    if free[i] == 0.0:
+        for a in range(3):
+            band[3 * p + a, 0] = wp.float64(1.0)
+        return
+    D = diag[i]
+    for a in range(3):
+        for c in range(a + 1):
+            band[3 * p + a, a - c] = wp.float64(D[a, c])
+    for q in range(offsets[i], offsets[i + 1]):
+        j = other[q]
+        pj = iperm[j]
+        if pj < p and free[j] != 0.0:
+            H = spring_block_matrix(coef[q])
+            for a in range(3):
+                for c in range(3):
+                    d = 3 * (p - pj) + a - c
+                    band[3 * p + a, d] = band[3 * p + a, d] - wp.float64(H[a, c])
+    for q in range(s_offsets[i], s_offsets[i + 1]):
+        j = s_cols[q]
+        pj = iperm[j]
+        if pj < p and free[j] != 0.0:
+            for a in range(3):
+                d = 3 * (p - pj)
+                band[3 * p + a, d] = band[3 * p + a, d] + wp.float64(s_vals[q])
+
+
+@wp.kernel
+def band_factor_kernel(band: wp.array2d(dtype=wp.float64), rows: int, width: int,
+                       failed: wp.array(dtype=int)):
+    """In place, row by row: ``A = L L^T`` with ``L`` in the same lower band
+    (``band[r, r - c] = L[r, c]``). A pivot that is not positive sets ``failed[0]``."""
+    failed[0] = 0
+    for r in range(rows):
+        j0 = wp.max(0, r - width)
+        for c in range(j0, r + 1):
+            # the dot product of rows r and c over their common band, in four partial sums
+            # (independent multiply-adds: about twice as fast as one running sum on a CPU)
+            k0 = wp.max(j0, c - width)
+            s0 = band[r, r - c]
+            s1 = wp.float64(0.0)
+            s2 = wp.float64(0.0)
+            s3 = wp.float64(0.0)
+            k = k0
+            while k + 3 < c:
+                s0 = s0 - band[r, r - k] * band[c, c - k]
+                s1 = s1 - band[r, r - k - 1] * band[c, c - k - 1]
+                s2 = s2 - band[r, r - k - 2] * band[c, c - k - 2]
+                s3 = s3 - band[r, r - k - 3] * band[c, c - k - 3]
+                k += 4
+            while k < c:
+                s0 = s0 - band[r, r - k] * band[c, c - k]
+                k += 1
+            s = (s0 + s1) + (s2 + s3)
+            if c < r:
+                band[r, r - c] = s / band[c, 0]
+            else:
+                if s > wp.float64(0.0):
+                    band[r, 0] = wp.sqrt(s)
+                else:
+                    failed[0] = 1
+                    band[r, 0] = wp.float64(1.0)
+
+
+@wp.kernel
+def band_solve_kernel(band: wp.array2d(dtype=wp.float64), rows: int, width: int,
+                      perm: wp.array(dtype=wp.int32), free: wp.array(dtype=float),
+                      dinv: wp.array(dtype=wp.mat33), failed: wp.array(dtype=int),
+                      r: wp.array(dtype=wp.vec3), y: wp.array(dtype=wp.float64),
+                      z: wp.array(dtype=wp.vec3), rz: wp.array(dtype=wp.float64), slot: int,
+                      fallbacks: wp.array(dtype=int)):
+    """``z = (L L^T)^-1 r`` (forward and back substitution in float64, in the band's order),
+    ``rz[slot] = r . z``; block Jacobi ``z = D^-1 r`` when the factorisation failed."""
+    n = rows // 3
+    acc = wp.float64(0.0)
+    if failed[0] != 0:
+        fallbacks[0] = fallbacks[0] + 1
+        for i in range(n):
+            zi = dinv[i] * r[i]
+            z[i] = zi
+            acc = acc + wp.float64(wp.dot(r[i], zi))
+        rz[slot] = acc
+        return
+    for row in range(rows):
+        p = row // 3
+        i = perm[p]
+        s = wp.float64(r[i][row - 3 * p] * free[i])
+        for k in range(wp.max(0, row - width), row):
+            s = s - band[row, row - k] * y[k]
+        y[row] = s / band[row, 0]
+    for t in range(rows):  # L^T: by columns of L^T (rows of L), reading the band in order
+        row = rows - 1 - t
+        xr = y[row] / band[row, 0]
+        y[row] = xr
+        for k in range(wp.max(0, row - width), row):
+            y[k] = y[k] - band[row, row - k] * xr
+    for p in range(n):
+        i = perm[p]
+        zi = wp.vec3(float(y[3 * p]), float(y[3 * p + 1]), float(y[3 * p + 2])) * free[i]
+        z[i] = zi
+        acc = acc + wp.float64(wp.dot(r[i], zi))
+    rz[slot] = acc
+
+
+class BandFactor:
+    """The banded Cholesky factor of a `SpringSystemOperator`'s in-band part (module
+    docstring): ``perm`` / ``width`` fixed from the operator's graph at construction,
+    `factor` every time the matrix changed, `apply` per preconditioning."""
+
+    def __init__(self, A):
+        for attr in ("offsets", "other", "coef", "s_offsets", "s_cols", "s_vals", "diag"):
+            if not hasattr(A, attr):
+                raise ValueError(f"linear='cholesky' needs implicit Euler's spring operator "
+                                 f"(its {attr!r}); {type(A).__name__} has none")
+        n, d = A.n, A.device
+        off = A.offsets.numpy().astype(np.int64)
+        rows = np.repeat(np.arange(n), np.diff(off))
+        cols = A.other.numpy()[: len(rows)]
+        soff = A.s_offsets.numpy().astype(np.int64)
+        srows = np.repeat(np.arange(n), np.diff(soff))
+        scols = A.s_cols.numpy()[: len(srows)]
+        allr, allc = np.concatenate([rows, srows]), np.concatenate([cols, scols])
+        # the narrower of the mesh's own numbering and reverse Cuthill-McKee (a grid with
+        # diagonal springs: its rows, one row wide; RCM's levels there are two rows wide)
+        self.perm, self.vertex_width = min(
+            ((p, band_width(p, allr, allc)) for p in (np.arange(n, dtype=np.int32),
+                                                      rcm_order(n, allr, allc))),
+            key=lambda pw: pw[1])
+        self.width = 3 * self.vertex_width + 2
+        self.rows = 3 * n
+        if self.rows * (self.width + 1) > MAX_BAND_ENTRIES:
+            raise ValueError(f"linear='cholesky': the band is {self.rows} x {self.width + 1} "
+                             f"float64 entries (more than {MAX_BAND_ENTRIES}); this mesh's "
+                             f"ordering is too wide for a banded factor: use linear='cg'")
+        iperm = np.empty(n, dtype=np.int32)
+        iperm[self.perm] = np.arange(n, dtype=np.int32)
+        self.perm_d = wp.array(self.perm, dtype=wp.int32, device=d)
+        self.iperm_d = wp.array(iperm, dtype=wp.int32, device=d)
+        self.band = wp.zeros((self.rows, self.width + 1), dtype=wp.float64, device=d)
+        self.y = wp.zeros(self.rows, dtype=wp.float64, device=d)
+        self.failed = wp.zeros(1, dtype=int, device=d)
+        self.fallbacks = wp.zeros(1, dtype=int, device=d)  # applications that fell back
+        self.factorisations = 0
+        self.operator = A
+
+    def factor(self) -> None:
+        A = self.operator
+        launch(band_assemble_kernel, A.n,
+               [self.perm_d, self.iperm_d, A.diag, A.free, A.offsets, A.other, A.coef,
+                A.s_offsets, A.s_cols, A.s_vals, self.width, self.band], device=A.device)
+        launch(band_factor_kernel, 1, [self.band, self.rows, self.width, self.failed],
+               device=A.device)
+        self.factorisations += 1
+
+    def apply(self, r, z, rz, slot: int) -> None:
+        A = self.operator
+        launch(band_solve_kernel, 1,
+               [self.band, self.rows, self.width, self.perm_d, A.free, A.diag_inv, self.failed,
+                r, self.y, z, rz, int(slot), self.fallbacks], device=A.device)
+
+
+class CholeskyCGSolver(CGSolver):
+    """CG preconditioned by `BandFactor` (module docstring): the same iteration as `CGSolver`
+    with ``z = (L L^T)^-1 r`` in place of ``D^-1 r``. The factor is refreshed on the next
+    `solve` after `invalidate` (`ImplicitEuler` calls it at every Newton assembly) or, with
+    ``refactor="solve"``, on every solve.
+
+    Args:
+        iterations: most CG iterations per solve (default 20: one or two suffice when every
+            term is in the band).
+        tolerance: relative residual ending a solve (None: run ``iterations``, capturable).
+        check_every: residual check period (host reads) with a tolerance.
+    """
+
+    name = "cholesky"
+
+    def __init__(self, iterations: int = 20, tolerance: float | None = 1e-3,
+                 check_every: int | None = None):
+        super().__init__(iterations, tolerance, check_every)
+        self.factor = None
+        self._stale = True
+
+    def invalidate(self) -> None:
+        """The operator's blocks changed: factor again before the next solve."""
+        self._stale = True
+
+    @property
+    def fallbacks(self) -> int:
+        """Applications that fell back to block Jacobi (a failed factorisation; host read)."""
+        return 0 if self.factor is None else int(self.factor.fallbacks.numpy()[0])
+
+    def solve(self, A, b, x, iterations=None, tolerance=...):
+        self._alloc(A)
+        if self.factor is None or self.factor.operator is not A:
+            self.factor = BandFactor(A)
+            self._stale = True
+        if self._stale:
+            self.factor.factor()
+            self._stale = False
+        F = self.factor
+        iters = self.iterations if iterations is None else int(iterations)
+        tol = self.tolerance if tolerance is ... else tolerance
+        check = self.check_every if (tolerance is ... or tol is None) else (self.check_every or 1)
+        if iters + 2 > self.s1.shape[0]:
+            for name in ("s1", "s2", "s3"):
+                setattr(self, name, wp.zeros(iters + 2, dtype=wp.float64, device=A.device))
+        d, n = A.device, A.n
+        rz, pap, rr = self.s1, self.s2, self.s3
+        rz.zero_(), pap.zero_(), rr.zero_(), self.bnorm.zero_()
+        A.matvec(x, self.ax)
+        launch(_cg_start_kernel, n,
+               [b, self.ax, A.free, A.diag_inv, self.r, self.z, rz, self.bnorm], device=d)
+        F.apply(self.r, self.z, rz, 0)
+        fused = getattr(A, "cg_direction", None)
+        bn = None
+        if check is not None:
+            bn = math.sqrt(float(self.bnorm.numpy()[0])) or 1.0
+        done, res = iters, float("nan")
+        for k in range(iters):
+            if fused is None or not fused(self.z, self.p, self.ap, rz, pap, k):
+                A.matvec(self.z, self.ax)
+                launch(_cg_direction_kernel, n,
+                       [self.z, self.ax, A.free, self.p, self.ap, rz, pap, k], device=d)
+            launch(_cg_update_kernel, n,
+                   [x, self.r, self.z, self.p, self.ap, A.diag_inv, A.free, rz, pap, rr, k],
+                   device=d)
+            F.apply(self.r, self.z, rz, k + 1)
+            if check is not None and ((k + 1) % check == 0 or k + 1 == iters):
+                res = math.sqrt(float(rr.numpy()[k])) / bn
+                if tol is not None and res < tol:
+                    done = k + 1
+                    break
+        return {"iterations": done, "residual": res,
+                "converged": tol is not None and res < tol, "fallback": False}
