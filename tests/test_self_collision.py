@@ -1199,3 +1199,37 @@ def test_separate_pieces_starting_within_the_thickness_are_refused():
     with pytest.raises(ValueError, match=r"separate pieces .* 0\.001 m apart"):
         CollisionStage(ClothModel(stacked), [], thickness=0.005, self_collision=True)
     CollisionStage(ClothModel(stacked), [], thickness=5e-4, self_collision=True)  # thinner: ok
+
+
+@pytest.mark.parametrize("margin, entries", [(0.005, False), (None, True)])
+def test_a_self_margin_of_the_thickness_takes_no_in_plane_neighbours(margin, entries):
+    """A flat sheet of 2 cm cells, 5 mm thickness: a vertex and the triangle across its cell's
+    diagonal lie 1.4 cm apart. With the solve's self margin at the thickness (the twist scene's)
+    they are no entries of the solve; with the default (the obstacles' 1 cm `solve_margin`)
+    every step carries them through every iteration."""
+    from warp_cloth.solvers.projective import ProjectiveDynamics
+
+    model = sheet_model(res=10, size=0.2, height=0.5)
+    stage = CollisionStage(model, [], self_collision=True, self_solve_margin=margin)
+    assert stage.self_solve_margin == pytest.approx(stage.solve_margin if margin is None
+                                                    else margin)
+    solver = ProjectiveDynamics(model, collision=stage)
+    state = model.state()
+    solver.step(state, 1 / 180)
+    n = solver.stats["self_solve_contacts"]
+    assert (n > 100) if entries else (n == 0), n
+
+
+@pytest.mark.parametrize("bad", [-1.0, float("nan"), "wide"])
+def test_a_bad_self_solve_margin_is_refused(bad):
+    model = sheet_model(res=4)
+    with pytest.raises(ValueError, match="self_solve_margin"):
+        CollisionStage(model, [], self_collision=True, self_solve_margin=bad)
+
+
+def test_the_twist_takes_the_thickness_as_its_solve_self_margin():
+    """The twist's 2 cm cells put in-plane pairs within the default margin (above)."""
+    from warp_cloth.contact_scenes import twist
+
+    scene = twist(res=6, frames=2, thickness=0.004)
+    assert scene.collision.self_solve_margin == pytest.approx(0.004)

@@ -780,7 +780,7 @@ class ContactCoupling:
             self.self_record.count.zero_()
             self.self_record.overflow.zero_()
             if sc is not None and self.stage.self_in_solve:
-                sc.detect(x_start, x_pred, sc.thickness + self.stage.solve_margin,
+                sc.detect(x_start, x_pred, sc.thickness + self.stage.self_solve_margin,
                           self.self_record)
                 launch(add_overflow_kernel, 1, [self.self_record, self.self_dropped],
                        device=self.device)
