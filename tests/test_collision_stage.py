@@ -361,10 +361,10 @@ def test_solve_itself_respects_contact(solver_name):
     worst = []
     resolve = stage.resolve
 
-    def check(state, x_start, dt):
+    def check(state, x_start, dt, **options):
         phi = stage.signed_distances(state.positions(), float(state.time.numpy()[0]) + dt)
         worst.append(stage.thickness - phi.min())
-        resolve(state, x_start, dt)
+        resolve(state, x_start, dt, **options)
 
     stage.resolve = check
     for _ in range(40):
@@ -1198,3 +1198,36 @@ def test_cloth_starting_on_a_mesh_across_its_rims_is_not_launched(solver_name):
     assert stats.max_strain < 0.05
     if solver_name != "pd":  # PD lifts an overhanging start by 2-3 cm (README, *Contact*)
         assert max(heights) - heights[0] < 0.01, heights
+
+
+def test_feature_friction_moves_vertices_back_after_explicit_euler_only_even_on_a_shared_stage():
+    """Whether the features' friction also moves the vertices back (no creep) is the solver's
+    (`Solver.friction_by_position`: explicit Euler), passed to every response; before, PBD
+    cleared a flag on the stage, and an explicit solver given the same stage afterwards never
+    set it again. Both solvers, one stage: PBD's steps pass False, explicit Euler's True,
+    fused or not (with a correction between its update and the stage)."""
+    from warp_cloth.collision import Box
+    from warp_cloth.solvers.explicit import SymplecticEuler
+    from warp_cloth.solvers.pbd import PositionBased as PBD
+
+    model = sheet_model(res=6, size=0.3, height=0.206)
+    stage = CollisionStage(model, [Box((0.1, 0.1, 0.1), (0.05, 0.1, 0.05), friction=0.5)],
+                           thickness=0.005)
+    assert stage.features.active and stage.features.has_friction
+    seen = []
+    real = stage.features.friction
+
+    def spy(state, dt, record, slack, position=False):
+        seen.append(position)
+        real(state, dt, record, slack, position)
+
+    stage.features.friction = spy
+    state = model.state()
+    for solver, want in ((PBD(model, collision=stage), False),
+                         (SymplecticEuler(model, collision=stage), True),
+                         (SymplecticEuler(model, collision=stage,
+                                          corrections=[StrainLimit(model, 0.0, 1.1)]), True),
+                         (PBD(model, collision=stage), False)):
+        seen.clear()
+        solver.step(state, 1e-3)
+        assert seen == [want], (type(solver).__name__, seen)

@@ -668,7 +668,7 @@ def friction_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3), v: wp.array(
     approaches no more, though the cloth's weight and tension press it on. The change
     ``delta`` of the point is shared like the response's correction (``w_j / m_j / sum_k w_k^2
     / m_k``, so ``sum_j w_j dv_j = delta``), Jacobi-averaged per vertex by
-    `friction_apply_kernel`, which with `FeatureContact.position_friction` also moves the
+    `friction_apply_kernel`, which with ``position`` (`FeatureContact.friction`) also moves the
     vertex by ``dv dt`` (what that velocity moved it in the step: a sticking point does not
     creep)."""
     t = wp.tid()
@@ -943,11 +943,6 @@ class FeatureContact:
         # float32 on the device: a coefficient past its range (friction 1e300 is accepted, and
         # sticks like any large one) is its largest value, not inf with a cast warning
         self.mu_t = wp.array(np.minimum(fr, 3.0e38).astype(np.float32), dtype=float, device=d)
-        #: whether `friction` also moves the vertices by the velocity it takes out times dt
-        #: (so a sticking point does not creep): explicit Euler. Implicit Euler and projective
-        #: dynamics (`contact_coupling.ContactCoupling`) and PBD (`CollisionStage.
-        #: begin_iterations`) set it False
-        self.position_friction = True
         #: whether any obstacle with features has friction (`friction` costs nothing if not)
         self.has_friction = bool((fr[_stack(src, (-1,), np.int64)] > 0.0).any())
         n = model.num_vertices
@@ -1049,9 +1044,11 @@ class FeatureContact:
         wp.capture_while(self._flags[0:1], self._round, state=state, dt=dt, record=record,
                          first=first)
 
-    def friction(self, state, dt: float, record, slack: float) -> None:
+    def friction(self, state, dt: float, record, slack: float, position: bool = False) -> None:
         """Coulomb friction of the record's entries within ``slack`` of their planes
-        (`friction_kernel`, then `friction_apply_kernel`), before `respond`."""
+        (`friction_kernel`, then `friction_apply_kernel`), before `respond`. ``position``: also
+        move the vertices back by the velocity taken out times dt, so a sticking point does not
+        creep (the solver's choice, `Solver.friction_by_position`: explicit Euler)."""
         if not self.active or not self.has_friction:
             return
         d, m = self.device, self.model
@@ -1060,7 +1057,7 @@ class FeatureContact:
                 dt, slack, self.pressed, self.acc, self.cnt, self.threads],
                device=d)
         launch(friction_apply_kernel, m.num_vertices,
-               [state.x, state.v, self.acc, self.cnt, dt, 1.0 if self.position_friction else 0.0,
+               [state.x, state.v, self.acc, self.cnt, dt, 1.0 if position else 0.0,
                 self.pressed], device=d)
 
     def _round(self, state, dt, record, first):

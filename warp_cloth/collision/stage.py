@@ -285,15 +285,16 @@ class CollisionStage:
         # and the folded sheet gained energy; with the full Hessian it does
 
     # ------------------------------------------------------------------ response
-    def resolve(self, state, x_start, dt: float) -> None:
+    def resolve(self, state, x_start, dt: float, position_friction: bool = False) -> None:
         """The final guarantee after the solve and the limits: `ObstacleContact.apply` (every
         vertex), then the sharp mesh features against the cloth's edges and triangles on the
-        actual paths (`FeatureContact`)."""
+        actual paths (`FeatureContact`). ``position_friction``: the features' friction also
+        moves the vertices back by what it takes out (`Solver.friction_by_position`)."""
         if self.contact is not None:
             self.contact.apply(state, x_start, dt)
-        self._pairs(state, x_start, dt)
+        self._pairs(state, x_start, dt, position_friction)
 
-    def _pairs(self, state, x_start, dt):
+    def _pairs(self, state, x_start, dt, position_friction: bool = False):
         """The sharp features against the cloth's edges and triangles, then self-collision, on
         the actual paths; then vertex contact again for the vertices those responses moved
         (one may push a vertex into another surface; the others are not approaching and are
@@ -305,7 +306,8 @@ class CollisionStage:
             # iterations) left resting on a feature, at the thickness, is in contact for it
             margin = self.contact.slack if self.features.has_friction else 0.0
             self.features.detect(x_start, state.x, margin, self.pair_record)
-            self.features.friction(state, dt, self.pair_record, self.contact.slack)
+            self.features.friction(state, dt, self.pair_record, self.contact.slack,
+                                   position_friction)
             self.features.respond(state, dt, self.pair_record)
             again = True
         if again and self.contact is not None:
@@ -344,11 +346,6 @@ class CollisionStage:
         if self.contact is not None:
             self.contact.begin_iterations(x, x_start, dt, time)
             if self.pair_record is not None:
-                # the features' friction after the step changes velocities only: moving the
-                # vertices back too stretched springs that PBD's next projections turned into
-                # speed (an 8 x 8 sheet sliding off a 0.1 m sphere gained 7.6e-3 J in a frame,
-                # 2.2e-3 J without; friction held as well at PBD's small steps)
-                self.features.position_friction = False
                 self.pair_record.count.zero_()
                 self.features.detect(x_start, x, 0.0, self.pair_record)
 
@@ -363,13 +360,15 @@ class CollisionStage:
     def fusable(self) -> bool:
         return self.contact is not None and self.contact.fusable
 
-    def integrate_and_apply(self, state, x_start, f, gravity, decay, dt, update) -> None:
+    def integrate_and_apply(self, state, x_start, f, gravity, decay, dt, update,
+                            position_friction: bool = False) -> None:
         """The solver's vertex update with `resolve` in the same pass (`ObstacleContact.
-        integrate_and_apply`), then the sharp features (which need every start position)."""
+        integrate_and_apply`), then the sharp features (which need every start position);
+        ``position_friction`` as in `resolve`."""
         if self.pair_record is not None or self.self_collision is not None:
             wp.copy(x_start, state.x)
         self.contact.integrate_and_apply(state, x_start, f, gravity, decay, dt, update)
-        self._pairs(state, x_start, dt)
+        self._pairs(state, x_start, dt, position_friction)
 
     # ------------------------------------------------------------------ reports
     def frame_end(self) -> list:

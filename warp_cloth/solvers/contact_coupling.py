@@ -712,13 +712,6 @@ class ContactCoupling:
         # obstacle's feature): their activity, for the off-diagonal part of their Hessian
         self._dt = 1.0  # the step's dt, set by `add_newton` (read by `matvec_add`)
         self._feature_pairs = getattr(getattr(stage, "features", None), "active", False)
-        if self._feature_pairs:
-            # the features' friction after the solve changes velocities only: moving the
-            # vertices back by what it takes out (as after explicit Euler and PBD) fought the
-            # solve, which has no friction on these entries and had relaxed the cloth around
-            # the sliding points (a strip held over a small sphere: 13.5 % strain under
-            # implicit Euler, 9.3 % under projective dynamics, against 1.3 % under explicit)
-            stage.features.position_friction = False
         #: whether the features' friction takes its normal impulse from this solve
         #: (`feature_press_kernel`, `end_step`)
         self._feature_friction = bool(self._feature_pairs

@@ -89,6 +89,7 @@ class SymplecticEuler(Solver):
         self.f = wp.zeros(model.num_vertices, dtype=wp.vec3, device=self.device)
 
     fuses_contact = True
+    friction_by_position = True  # (`Solver.friction_by_position`)
     uniform_method = True
 
     def _advance(self, state, dt):
@@ -98,7 +99,8 @@ class SymplecticEuler(Solver):
         fused = self.fused
         if fused is not None:  # obstacle contact's far tests inside the vertex update
             fused.integrate_and_apply(state, self._x_start, self.f, wp.vec3(*m.gravity),
-                                      math.exp(-m.damping * dt), dt, symplectic_velocity)
+                                      math.exp(-m.damping * dt), dt, symplectic_velocity,
+                                      self.friction_by_position)
             return
         launch(
             integrate_symplectic_kernel,
