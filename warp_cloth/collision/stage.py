@@ -55,6 +55,17 @@ __all__ = ["CollisionStage", "DEFAULT_SOLVE_MARGIN", "DEFAULT_SELF_MOTION"]
 def _positive(name, value) -> float:
     return positive_finite(value, name, "metres")
 
+
+def _margin(name, value) -> float:
+    """``value`` as metres >= 0, or a ValueError naming ``name``."""
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number of metres, got {value!r}") from None
+    if not (math.isfinite(out) and out >= 0):
+        raise ValueError(f"{name} must be >= 0 metres, got {out}")
+    return out
+
 #: m; a vertex whose predicted path comes this far beyond the contact thickness of an obstacle
 #: gets a constraint in the record (the solve may move it that much off its prediction)
 DEFAULT_SOLVE_MARGIN = 0.01
@@ -155,13 +166,7 @@ class CollisionStage:
                 raise ValueError(f"CollisionStage: obstacle contact options "
                                  f"{sorted(set(contact_options) - {'thickness'})} without "
                                  "obstacles")
-        try:
-            solve_margin = float(solve_margin)
-        except (TypeError, ValueError):
-            raise ValueError(f"solve_margin must be a number of metres, got {solve_margin!r}") \
-                from None
-        if not (math.isfinite(solve_margin) and solve_margin >= 0):
-            raise ValueError(f"solve_margin must be >= 0 metres, got {solve_margin}")
+        solve_margin = _margin("solve_margin", solve_margin)
         try:
             self_motion = float(self_motion)
         except (TypeError, ValueError):
@@ -174,16 +179,8 @@ class CollisionStage:
         self.device = model.device
         self.contact = contact
         self.solve_margin = solve_margin
-        if self_solve_margin is not None:
-            try:
-                self_solve_margin = float(self_solve_margin)
-            except (TypeError, ValueError):
-                raise ValueError(f"self_solve_margin must be a number of metres or None, got "
-                                 f"{self_solve_margin!r}") from None
-            if not (math.isfinite(self_solve_margin) and self_solve_margin >= 0):
-                raise ValueError(f"self_solve_margin must be >= 0 metres, got "
-                                 f"{self_solve_margin}")
-        self.self_solve_margin = solve_margin if self_solve_margin is None else self_solve_margin
+        self.self_solve_margin = (solve_margin if self_solve_margin is None
+                                  else _margin("self_solve_margin", self_solve_margin))
         self.self_motion = self_motion
         self.self_in_solve = bool(self_in_solve)
         # cloth edges and triangles against the meshes' sharp features (none: no cost)

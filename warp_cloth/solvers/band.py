@@ -29,14 +29,11 @@ sets a flag on the device and the applications fall back to block Jacobi (counte
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import warp as wp
 
 from ..util import launch
-from .linear import CGSolver, _cg_direction_kernel, _cg_start_kernel, _cg_update_kernel, \
-    spring_block_matrix
+from .linear import CGSolver, spring_block_matrix
 
 wp.set_module_options({"enable_backward": False})
 
@@ -290,8 +287,8 @@ class BandFactor:
 class CholeskyCGSolver(CGSolver):
     """CG preconditioned by `BandFactor` (module docstring): the same iteration as `CGSolver`
     with ``z = (L L^T)^-1 r`` in place of ``D^-1 r``. The factor is refreshed on the next
-    `solve` after `invalidate` (`ImplicitEuler` calls it at every Newton assembly) or, with
-    ``refactor="solve"``, on every solve.
+    `solve` after `invalidate` (`ImplicitEuler` calls it at every Newton assembly, so each
+    Newton matrix is factored once).
 
     Args:
         iterations: most CG iterations per solve (default 20: one or two suffice when every
@@ -317,46 +314,13 @@ class CholeskyCGSolver(CGSolver):
         """Applications that fell back to block Jacobi (a failed factorisation; host read)."""
         return 0 if self.factor is None else int(self.factor.fallbacks.numpy()[0])
 
-    def solve(self, A, b, x, iterations=None, tolerance=...):
-        self._alloc(A)
+    def _prepare(self, A) -> None:
         if self.factor is None or self.factor.operator is not A:
             self.factor = BandFactor(A)
             self._stale = True
         if self._stale:
             self.factor.factor()
             self._stale = False
-        F = self.factor
-        iters = self.iterations if iterations is None else int(iterations)
-        tol = self.tolerance if tolerance is ... else tolerance
-        check = self.check_every if (tolerance is ... or tol is None) else (self.check_every or 1)
-        if iters + 2 > self.s1.shape[0]:
-            for name in ("s1", "s2", "s3"):
-                setattr(self, name, wp.zeros(iters + 2, dtype=wp.float64, device=A.device))
-        d, n = A.device, A.n
-        rz, pap, rr = self.s1, self.s2, self.s3
-        rz.zero_(), pap.zero_(), rr.zero_(), self.bnorm.zero_()
-        A.matvec(x, self.ax)
-        launch(_cg_start_kernel, n,
-               [b, self.ax, A.free, A.diag_inv, self.r, self.z, rz, self.bnorm], device=d)
-        F.apply(self.r, self.z, rz, 0)
-        fused = getattr(A, "cg_direction", None)
-        bn = None
-        if check is not None:
-            bn = math.sqrt(float(self.bnorm.numpy()[0])) or 1.0
-        done, res = iters, float("nan")
-        for k in range(iters):
-            if fused is None or not fused(self.z, self.p, self.ap, rz, pap, k):
-                A.matvec(self.z, self.ax)
-                launch(_cg_direction_kernel, n,
-                       [self.z, self.ax, A.free, self.p, self.ap, rz, pap, k], device=d)
-            launch(_cg_update_kernel, n,
-                   [x, self.r, self.z, self.p, self.ap, A.diag_inv, A.free, rz, pap, rr, k],
-                   device=d)
-            F.apply(self.r, self.z, rz, k + 1)
-            if check is not None and ((k + 1) % check == 0 or k + 1 == iters):
-                res = math.sqrt(float(rr.numpy()[k])) / bn
-                if tol is not None and res < tol:
-                    done = k + 1
-                    break
-        return {"iterations": done, "residual": res,
-                "converged": tol is not None and res < tol, "fallback": False}
+
+    def _precondition(self, A, rz, slot: int) -> None:
+        self.factor.apply(self.r, self.z, rz, slot)

@@ -321,8 +321,16 @@ class CGSolver(_Base):
 
     name = "cg"
 
+    def _prepare(self, A) -> None:
+        """Before a solve (a preconditioner's set-up: `band.CholeskyCGSolver`); none here."""
+
+    def _precondition(self, A, rz, slot: int) -> None:
+        """``z`` from ``r`` and ``rz[slot] = r . z`` when the preconditioner is not the block
+        Jacobi that the start and update kernels apply (`band.CholeskyCGSolver`); none here."""
+
     def solve(self, A, b, x, iterations=None, tolerance=...):
         self._alloc(A)
+        self._prepare(A)
         iters = self.iterations if iterations is None else int(iterations)
         tol = self.tolerance if tolerance is ... else tolerance
         check = self.check_every if (tolerance is ... or tol is None) else (self.check_every or 1)
@@ -335,6 +343,7 @@ class CGSolver(_Base):
         A.matvec(x, self.ax)
         launch(_cg_start_kernel, n,
                [b, self.ax, A.free, A.diag_inv, self.r, self.z, rz, self.bnorm], device=d)
+        self._precondition(A, rz, 0)
         fused = getattr(A, "cg_direction", None)
         bn = None
         if check is not None:
@@ -348,6 +357,7 @@ class CGSolver(_Base):
             launch(_cg_update_kernel, n,
                    [x, self.r, self.z, self.p, self.ap, A.diag_inv, A.free, rz, pap, rr, k],
                    device=d)
+            self._precondition(A, rz, k + 1)
             if check is not None and ((k + 1) % check == 0 or k + 1 == iters):
                 res = math.sqrt(float(rr.numpy()[k])) / bn
                 if tol is not None and res < tol:
