@@ -1233,3 +1233,75 @@ def test_the_twist_takes_the_thickness_as_its_solve_self_margin():
 
     scene = twist(res=6, frames=2, thickness=0.004)
     assert scene.collision.self_solve_margin == pytest.approx(0.004)
+
+
+def _layers(res=6, size=0.3, heights=(0.0, 0.012, 0.0225)):
+    """Sheets stacked at ``heights`` (one model)."""
+    from warp_cloth.mesh import TriMesh
+    from warp_cloth.model import ClothModel
+
+    verts, tris = [], []
+    for h in heights:
+        g = TriMesh.grid(res, res, size=size, plane="xz", origin=(-0.5 * size, h, -0.5 * size))
+        tris.append(g.triangles + sum(len(v) for v in verts))
+        verts.append(g.vertices)
+    return ClothModel(TriMesh(np.concatenate(verts), np.concatenate(tris), name="cloth"))
+
+
+def _rounds_outcome(model, x0, x1, incremental, capacity=None):
+    import warp as wp
+
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    sc = SelfCollision(model, 0.01, capacity=capacity)
+    sc.incremental_rounds = incremental
+    state = model.state()
+    state.x.assign(x1.astype(np.float32))
+    sc.resolve(state, wp.array(x0.astype(np.float32), dtype=wp.vec3), 1 / 60)
+    k = int(sc.record.count.numpy()[0])
+    entries = sorted(tuple(int(i) for i in v) for v in sc.record.vertex.numpy()[:k])
+    return state.x.numpy().copy(), sc.stats, entries, int(sc._flags.numpy()[0])
+
+
+def _folding_paths(res=10, size=0.3, lift=0.002):
+    """A flat sheet whose right half swings over onto its left half in one step (each vertex on
+    the straight line to its folded place ``lift`` above): the paths cross the left half."""
+    model = sheet_model(res=res, size=size, height=0.5)
+    x0 = model.mesh.vertices.astype(np.float64)
+    x1 = x0.copy()
+    right = x0[:, 0] > 1e-9
+    x1[right, 0] = -x0[right, 0]
+    x1[right, 1] += lift * (1.0 + x0[right, 0] / size)
+    return model, x0, x1
+
+
+@pytest.mark.parametrize("case", ["fold", "layers", "overflow"])
+def test_rounds_after_the_first_detect_only_what_moved_and_end_as_full_detection(case):
+    """Rounds after the first keep the entries of pairs whose vertices the last round did not
+    move and detect only the rest (`SelfCollision._round`). The response then ends exactly where
+    rounds of full detection end: the same positions, contacts, rounds and record (for
+    `hold`). A fold that needs several rounds; three sheets, the bottom one rising into the
+    middle one, whose push out of it brings the middle one within the thickness of the top one
+    (a pair no vertex of which was in the first round's record: found only because its
+    vertices moved). And the fold with a record too small for it: after a round that dropped
+    pairs every pair is looked for again."""
+    capacity = 24 if case == "overflow" else 1 << 16
+    if case in ("fold", "overflow"):
+        model, x0, x1 = _folding_paths()
+    else:
+        model = _layers()
+        x0 = model.mesh.vertices.astype(np.float64)
+        x1 = x0.copy()
+        x1[: len(x1) // 3, 1] += 0.008  # bottom sheet 4 mm under the middle one
+    (xa, sa, ea, ra), (xb, sb, eb, rb) = (_rounds_outcome(model, x0, x1, inc, capacity)
+                                          for inc in (True, False))
+    assert sb["self_contacts"] > 40 and rb >= 2, (sb, rb)  # several rounds
+    assert (sb["self_overflow"] > 0) == (case == "overflow")
+    top = xb[2 * len(xb) // 3:, 1]
+    if case == "layers":
+        assert top.max() > 0.0225 + 1e-4  # the top sheet was pushed: a pair found in round 2+
+    np.testing.assert_allclose(xa, xb, atol=1e-6)
+    assert (sa, ra) == (sb, rb)
+    assert ea == eb
+    if case != "overflow":  # (a record too small resolves only what it holds)
+        assert self_crossings(xa, model.mesh.triangles, model.mesh.edges) == 0
