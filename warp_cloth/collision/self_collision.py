@@ -680,49 +680,6 @@ def zone_pass_kernel(rec: ContactRecord, flags: wp.array(dtype=int), passes: int
 
 
 @wp.kernel
-def keep_still_kernel(rec: ContactRecord, active: wp.array(dtype=int)):
-    """The record's entries none of whose vertices is ``active``, compacted in order to its
-    front (one thread), the rest dropped: a round's detection finds those again
-    (`SelfCollision._round`)."""
-    count = wp.min(rec.count[0], rec.vertex.shape[0])
-    k = int(0)
-    for e in range(count):
-        vid = rec.vertex[e]
-        moved = int(0)
-        for j in range(4):
-            v = vid[j]
-            if v >= 0:
-                if active[v] != 0:
-                    moved = 1
-        if moved == 0:
-            if k != e:
-                rec.vertex[k] = vid
-                rec.weight[k] = rec.weight[e]
-                rec.normal[k] = rec.normal[e]
-                rec.offset[k] = rec.offset[e]
-                rec.ref[k] = rec.ref[e]
-                rec.friction[k] = rec.friction[e]
-                rec.restitution[k] = rec.restitution[e]
-                rec.source[k] = rec.source[e]
-                rec.kind[k] = rec.kind[e]
-            k += 1
-    rec.count[0] = k
-
-
-@wp.kernel
-def moved_kernel(x: wp.array(dtype=wp.vec3), before: wp.array(dtype=wp.vec3),
-                 overflow: wp.array(dtype=int), active: wp.array(dtype=int)):
-    """``active[i]`` = 1 where the round moved vertex ``i`` (the projection or vertex contact),
-    and everywhere after a round whose record overflowed (the pairs it could not hold are
-    looked for again)."""
-    i = wp.tid()
-    d = x[i] - before[i]
-    active[i] = 0
-    if d[0] != 0.0 or d[1] != 0.0 or d[2] != 0.0 or overflow[0] > 0:
-        active[i] = 1
-
-
-@wp.kernel
 def step_begin_kernel(done: wp.array(dtype=int), violated: wp.array(dtype=int),
                       flags: wp.array(dtype=int), counters: wp.array(dtype=int)):
     """The step's flags and counters reset in one launch: not done, a first round to run."""
@@ -977,13 +934,11 @@ class SelfCollision:
         self._allowances = c > 1.01
         self.allowances = False  # in use (`plan`)
 
-    def detect(self, x0, x1, gap: float, record, done=None, active=None) -> None:
+    def detect(self, x0, x1, gap: float, record, done=None) -> None:
         """Self-contacts on the paths ``x0 -> x1`` that come within ``gap`` appended to
-        ``record`` as constraints keeping the thickness (none while ``done[0]``). ``active``
-        (the BVH broad phase, a response's rounds after the first: `_round`): only the pairs
-        with a vertex marked in it."""
+        ``record`` as constraints keeping the thickness (none while ``done[0]``)."""
         self._query(x0, x1, gap, record, self._never if done is None else done,
-                    self._no_pairs, self._no_pairs, self._npairs, active=active)
+                    self._no_pairs, self._no_pairs, self._npairs)
 
     def candidates(self, x0, x1, gap: float, capacity: int = 1 << 20):
         """The broad phase's candidate pairs for the paths ``x0 -> x1`` with pad ``gap``, after
@@ -1002,11 +957,9 @@ class SelfCollision:
             out.append({tuple(int(i) for i in p) for p in pairs.numpy()[:k]})
         return tuple(out)
 
-    def _query(self, x0, x1, gap, record, done, vt_pairs, ee_pairs, npairs, vt=True, ee=True,
-               active=None):
+    def _query(self, x0, x1, gap, record, done, vt_pairs, ee_pairs, npairs, vt=True, ee=True):
         b, m, d = self.broad, self.model, self.device
-        rounds = active is not None and not self._in_span and b.method == "bvh"
-        b.update(x0, x1, gap, vertices=self._in_span or rounds)
+        b.update(x0, x1, gap, vertices=self._in_span)
         common = [x0, x1]
         if b.method == "grid":
             if vt:
@@ -1020,31 +973,25 @@ class SelfCollision:
                         self.thickness, m.inv_mass, self.rest, done, record, ee_pairs, npairs],
                        device=d)
         else:
+            active = self._no_int
             if self._in_span:  # allowances from the span's start: only the active part queries
                 active = self._active
                 slack = max(0.0, 0.5 * (float(gap) - self.thickness))
                 launch(active_kernel, m.num_vertices, [x0, x1, self._allow, slack, active],
                        device=d)
-            elif not rounds:
-                active = self._no_int
-            tv = [b.vertex_bvh.id if (self._in_span or rounds) else 0, b.lowers, b.uppers,
-                  *common, b.tris, gap, self.thickness, m.inv_mass, self.rest, done, active,
-                  record, vt_pairs, npairs]
             if vt:
                 launch(self_vt_bvh_kernel, m.num_vertices,
                        [b.tri_bvh.id, *common, b.tris, gap, self.thickness, m.inv_mass,
                         self.rest, done, active, record, vt_pairs, npairs], device=d)
                 if self._in_span:
-                    launch(self_tv_bvh_kernel, b.num_tris, tv, device=d)
-                elif rounds:  # not in the first round, where every vertex is active
-                    wp.capture_if(self._flags[0:1], self._tv_query, args=tv)
+                    launch(self_tv_bvh_kernel, b.num_tris,
+                           [b.vertex_bvh.id, b.lowers, b.uppers, *common, b.tris, gap,
+                            self.thickness, m.inv_mass, self.rest, done, active, record,
+                            vt_pairs, npairs], device=d)
             if ee:
                 launch(self_ee_bvh_kernel, b.num_edges,
                        [b.edge_bvh.id, *common, b.edges, gap, self.thickness, m.inv_mass,
                         self.rest, done, active, record, ee_pairs, npairs], device=d)
-
-    def _tv_query(self, args):
-        launch(self_tv_bvh_kernel, self.broad.num_tris, args, device=self.device)
 
     # ------------------------------------------------------------------ spans
     def plan(self, substeps: int, motion: float) -> None:
@@ -1265,8 +1212,6 @@ class SelfCollision:
         launch(step_begin_kernel, max(len(STAT_KEYS), 1),
                [self.done, self.violated, self._flags, self.counters], device=d)
         steps = self._one if steps is None else steps
-        if self._incremental:
-            self._round_active.fill_(1)  # the first round looks at every pair
         wp.capture_while(self._flags[1:2], self._round, state=state, x_start=x_start, dt=dt)
         wp.capture_if(self._flags[2:3], self._fallback, state=state, x_start=x_start, dt=dt,
                       steps=steps)
@@ -1275,42 +1220,10 @@ class SelfCollision:
     #: `step`'s ``obstacles`` callable (None: no obstacles)
     _obstacles = None
 
-    @property
-    def _incremental(self) -> bool:
-        """Rounds after the first detect only the pairs with a vertex the last round moved or
-        left violated (`_round`): BVH broad phase, not inside a span's allowances."""
-        if self.broad.method != "bvh" or self._in_span or not self.incremental_rounds:
-            return False
-        if self._round_active is None:
-            n = self.model.num_vertices
-            self._round_active = wp.ones(n, dtype=int, device=self.device)
-            self._round_x = wp.zeros(n, dtype=wp.vec3, device=self.device)
-        return True
-
-    _round_active = None
-    #: False: every round detects every pair (the reference the tests compare with)
-    incremental_rounds = True
-
     def _round(self, state, x_start, dt):
-        """One round: detection, `iterations` Jacobi projections, vertex contact. After the
-        first, the record keeps the entries none of whose vertices the last round moved
-        (`keep_still_kernel`) and the detection looks only for the pairs with such a vertex
-        (`detect`'s ``active``): a pair whose vertices did not move has the same paths, so a
-        full detection finds the same (nothing, or the kept entry), and the record ends each
-        round as a full detection would leave it (`hold` projects it between responses). On
-        the twist (PD, frames 120-130), where every step runs all four rounds, a round moves
-        about a quarter of the vertices: 1.57 -> 1.27 s a frame (run eagerly)."""
-        inc = self._incremental
-        m = self.model
-        if inc:
-            launch(keep_still_kernel, 1, [self.record, self._round_active], device=self.device)
-        else:
-            self.record.count.zero_()
+        self.record.count.zero_()
         self.record.overflow.zero_()
-        self.detect(x_start, state.x, self._gap, self.record, self.done,
-                    active=self._round_active if inc else None)
-        if inc:
-            wp.copy(self._round_x, state.x)
+        self.detect(x_start, state.x, self._gap, self.record, self.done)
         self._project(state, dt)
         if self._obstacles is not None:
             # the projection splits a pair's correction between its layers and can push a
@@ -1318,10 +1231,6 @@ class SelfCollision:
             # detection checks the layers again. A round whose projection moved nothing
             # (the last) leaves nothing for this to move: the rounds end clear of both
             self._obstacles()
-        if inc:
-            launch(moved_kernel, m.num_vertices,
-                   [state.x, self._round_x, self.record.overflow, self._round_active],
-                   device=self.device)
         launch(round_end_kernel, 1, [self.record, self.violated, self.done, self.counters,
                                      self._flags, self.rounds], device=self.device)
 
