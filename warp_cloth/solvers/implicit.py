@@ -819,6 +819,7 @@ class ImplicitEuler(Solver):
         # stage with nothing near (a hanging sheet with self-collision on) is no contact
         self._free = wp.ones(1, dtype=int, device=d)
         self._no_count = wp.zeros(0, dtype=int, device=d)
+        self._fallbacks_seen = 0  # (`_frame_messages`, linear="cholesky")
         self._guard = {"extended": 0, "gained": 0, "new": 0, "last": 0.0, "rejected": 0,
                        "clamped": 0, "gradient": 0, "scale": 1.0}
         self.residuals = wp.zeros(self._k_total + 1, dtype=wp.float32, device=d)
@@ -873,6 +874,8 @@ class ImplicitEuler(Solver):
             self._stats.update(self.collision.stats)
             self._stats["contacts_active"] = int(self._coupling.active.numpy()[0])
             self._stats.update(self._coupling.self_stats)
+        if self.linear_name == "cholesky":  # applications without a factor, over the run
+            self._stats["factor_fallbacks"] = self.linear.fallbacks
         return self._stats
 
     @stats.setter
@@ -1274,6 +1277,13 @@ class ImplicitEuler(Solver):
             out.append(f"implicit: {sh['inner_new']} {self.linear_name} inner solve(s) stopped at "
                        f"{self.linear.iterations} iterations above their tolerance")
         sh["new"] = sh["inner_new"] = 0
+        if self.linear_name == "cholesky":
+            n = self.linear.fallbacks
+            new, self._fallbacks_seen = n - self._fallbacks_seen, n
+            if new > 0:
+                out.append(f"implicit: {new} cholesky preconditioner application(s) fell back to "
+                           "block Jacobi: a Newton matrix had no Cholesky factor (not positive "
+                           "definite: exact_hessian=True under compression)")
         g = self._guard
         if g["new"]:
             if g["scale"] < 1.0:
