@@ -78,6 +78,20 @@ def positive_finite(value, what: str, unit: str = "") -> float:
     return v
 
 
+def nonnegative_finite(value, what: str, unit: str = "") -> float:
+    """``float(value)`` if it is a finite number >= 0, else a `ValueError` naming ``what`` (and
+    its ``unit``): `positive_finite`'s twin for quantities that may be zero."""
+    of = f" of {unit}" if unit else ""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a number{of} >= 0, got {value!r}") from None
+    if not (math.isfinite(v) and v >= 0):
+        raise ValueError(f"{what} must be finite and >= 0{f' ({unit})' if unit else ''}, "
+                         f"got {value!r}")
+    return v
+
+
 # ---------------------------------------------------------------------------- recorded launches
 #: recorded launches by (kernel, dim, device, array layout); cleared when it reaches the cap
 _LAUNCHES: dict = {}

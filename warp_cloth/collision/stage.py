@@ -43,7 +43,7 @@ import warp as wp
 from .contact import DEFAULT_THICKNESS, ObstacleContact
 from .obstacles import Obstacle
 from .record import make_record
-from ..util import positive_finite
+from ..util import nonnegative_finite, positive_finite
 
 #: `CollisionStage.contact_substeps`: a moving obstacle travels at most this many of the cloth's
 #: shortest edge lengths in one step
@@ -57,14 +57,7 @@ def _positive(name, value) -> float:
 
 
 def _margin(name, value) -> float:
-    """``value`` as metres >= 0, or a ValueError naming ``name``."""
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number of metres, got {value!r}") from None
-    if not (math.isfinite(out) and out >= 0):
-        raise ValueError(f"{name} must be >= 0 metres, got {out}")
-    return out
+    return nonnegative_finite(value, name, "metres")
 
 #: m; a vertex whose predicted path comes this far beyond the contact thickness of an obstacle
 #: gets a constraint in the record (the solve may move it that much off its prediction)
@@ -167,14 +160,7 @@ class CollisionStage:
                                  f"{sorted(set(contact_options) - {'thickness'})} without "
                                  "obstacles")
         solve_margin = _margin("solve_margin", solve_margin)
-        try:
-            self_motion = float(self_motion)
-        except (TypeError, ValueError):
-            raise ValueError(f"self_motion must be a fraction of the thickness, got "
-                             f"{self_motion!r}") from None
-        if not (math.isfinite(self_motion) and self_motion >= 0):
-            raise ValueError(f"self_motion must be >= 0 (a fraction of the thickness), got "
-                             f"{self_motion}")
+        self_motion = nonnegative_finite(self_motion, "self_motion", "thicknesses")
         self.model = model
         self.device = model.device
         self.contact = contact
