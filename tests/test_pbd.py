@@ -118,14 +118,48 @@ def test_more_iterations_monotonically_smaller_violation(gs):
 
 
 def test_gauss_seidel_converges_faster_than_jacobi():
+    """T26, for the notes' Jacobi blend (no over-relaxation) and the default over-relaxed one."""
     model = hanging_model(res=12)
     x_start = perturbed(model, drop=0.05)
     out = {}
-    for gs in (False, True):
+    for key, kw in (("gs", dict(gauss_seidel=True)), ("plain", dict(over_relaxation=1.0)),
+                    ("default", {})):
         x = arr(x_start)
-        PositionBased(model, gauss_seidel=gs).project(x, iterations=16)
-        out[gs] = np.abs(edge_strains(model, x.numpy())).max()
-    assert out[True] < out[False]
+        PositionBased(model, **kw).project(x, iterations=16)
+        out[key] = np.abs(edge_strains(model, x.numpy())).max()
+    assert out["gs"] < out["default"] < out["plain"]
+
+
+@pytest.mark.parametrize("its", [4, 16, 64])
+def test_over_relaxed_jacobi_blend_converges_faster(its):
+    """The default blend moves each vertex by 1.7 times its averaged correction: after the same
+    iterations from the same perturbed cloth the largest constraint violation is about a third
+    lower than the notes' blend (measured 0.119 / 0.046 / 0.015 against 0.166 / 0.064 /
+    0.024), and an explicit ``over_relaxation`` is what the blend uses."""
+    model = hanging_model(res=12)
+    x_start = perturbed(model, drop=0.05)
+    viol = {}
+    for w in (1.0, None, 1.7):
+        x = arr(x_start)
+        PositionBased(model, over_relaxation=w).project(x, iterations=its)
+        viol[w] = np.abs(edge_strains(model, x.numpy())).max()
+    assert viol[None] < 0.8 * viol[1.0]
+    assert viol[1.7] == viol[None]
+
+
+def test_over_relaxation_options():
+    model = hanging_model(res=4)
+    assert PositionBased(model).over_relaxation == 1.7
+    assert "jacobi x1.7" in PositionBased(model).describe()
+    assert PositionBased(model, over_relaxation=1.0).describe().startswith("pbd (jacobi, ")
+    for kw in (dict(gauss_seidel=True), dict(compliance=1e-3), dict(bending_compliance=0.0)):
+        assert PositionBased(model, **kw).over_relaxation == 1.0  # their own weights
+        assert PositionBased(model, over_relaxation=1.0, **kw).over_relaxation == 1.0
+        with pytest.raises(ValueError, match="over_relaxation applies to plain PBD"):
+            PositionBased(model, over_relaxation=1.5, **kw)
+    for bad in (0.0, 2.0, -1.0, float("nan"), float("inf"), True, "1.5"):
+        with pytest.raises(ValueError, match=r"over_relaxation must be a number in \(0, 2\)"):
+            PositionBased(model, over_relaxation=bad)
 
 
 # ---------------------------------------------------------------------- T26: order independence
@@ -218,11 +252,11 @@ def test_xpbd_single_spring_equilibrium_is_the_spring_law():
         x = state.positions()
         assert abs(x[1, 0]) < 1e-6 and abs(x[1, 2]) < 1e-6
         assert -x[1, 1] - 1.0 == pytest.approx(m * g * a * math.exp(-c * dt), rel=1e-3)
-    # compliance 0 is plain PBD: the same projection
+    # compliance 0 is the notes' plain PBD (not over-relaxed): the same projection
     m0 = one_triangle_model()
     x_start = np.array([[0.1, 0.3, -0.2], [1.3, 0.0, 0.1], [0.0, -0.2, 1.4]])
     p, q = arr(x_start), arr(x_start)
-    PositionBased(m0, iterations=3).project(p)
+    PositionBased(m0, iterations=3, over_relaxation=1.0).project(p)
     PositionBased(m0, iterations=3, compliance=0.0).project(q)
     np.testing.assert_allclose(p.numpy(), q.numpy(), atol=1e-6)
 
@@ -337,6 +371,23 @@ def test_cli_runs_pbd(tmp_usd):
     with pytest.raises(SystemExit) as e:
         main(["run", "hanging", "--no-tethers", "--res", "4", "--frames", "2", "--quiet"])
     assert e.value.code == 2
+
+
+def test_cli_over_relaxation(tmp_usd, capsys):
+    import json
+
+    from warp_cloth.cli import main
+
+    assert main(["run", "hanging", "--solver", "pbd", "--over-relaxation", "1.2", "--res", "4",
+                 "--frames", "2", "--substeps", "2", "--quiet", "--json", "--out",
+                 tmp_usd]) == 0
+    assert json.loads(capsys.readouterr().out)["method"].startswith("pbd (jacobi x1.2, ")
+    for bad in (["--over-relaxation", "2.5"], ["--over-relaxation", "1.2", "--gauss-seidel"]):
+        with pytest.raises(SystemExit) as e:
+            main(["run", "hanging", "--solver", "pbd", *bad, "--res", "4", "--frames", "2",
+                  "--quiet", "--out", tmp_usd + ".bad.usd"])
+        assert e.value.code == 2
+        assert "over_relaxation" in capsys.readouterr().err
 
 
 def test_spring_of_zero_stiffness_is_no_constraint():

@@ -54,6 +54,7 @@ SOLVER_OPTIONS = {
     "gauss_seidel": ("gauss_seidel", ("pbd",)),
     "compliance": ("compliance", ("pbd",)),
     "no_tethers": ("tethers", ("pbd",)),
+    "over_relaxation": ("over_relaxation", ("pbd",)),
 }
 
 
@@ -159,6 +160,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--compliance", type=_nonneg_float, default=None, help="pbd: XPBD compliance")
     r.add_argument("--no-tethers", action="store_const", const=False, default=None,
                    help="pbd: no long-range attachments to the pins (on by default with pins)")
+    r.add_argument("--over-relaxation", type=_positive_float, default=None, metavar="OMEGA",
+                   help="pbd: Jacobi blend over-relaxation in (0, 2) (default 1.7; 1: the "
+                        "notes' plain blend)")
     r.add_argument("--strain-limit", type=_range_pair, default=None, metavar="SMIN,SMAX")
     r.add_argument("--area-limit", type=_range_pair, default=None, metavar="AMIN,AMAX")
     r.add_argument("--friction", type=_nonneg_float, default=None,

@@ -639,7 +639,8 @@ class StrainLimit(_JacobiLimit):
 
     ``sigma_min = sigma_max = 1`` with ``tolerance=None``, ``tethers=0`` and
     ``over_relaxation=1`` is exactly (bit for bit, on the CPU) a plain-PBD stretch pass with the
-    same iterations, relaxation and mode; ``[0, inf]`` launches
+    same iterations, relaxation and mode (`PositionBased` with ``over_relaxation=1``, the notes'
+    blend); ``[0, inf]`` launches
     nothing.
     """
 
