@@ -376,12 +376,16 @@ def test_table_cloth_slides_off_the_edge(solver_name):
     scene = table(res=32 if solver_name == "pd" else 8, frames=150, solver=solver_name)
     scene.run(quiet=True, energy=False)
     x = scene.state.positions()
-    # the sheet left the table top (x > 0.4 m) and most of it reached the floor (the table top
-    # is at 0.75 m; with self-collision on, the default, the sheet piles up on the floor in
-    # layers: PD's median height at frame 150 is 0.104 m, 0.056 without it; its leftmost
-    # vertex rests against the table's side at x = 0.405 m, the thickness from it, from frame
-    # 150 to 180, against 0.534 m without)
-    assert x[:, 0].min() > 0.4
+    # the sheet left the table top (the box's top face: |x| < 0.4, |z| < 0.3 m, at 0.75 m) and
+    # most of it reached the floor (with self-collision on, the default, the sheet piles up on
+    # the floor in layers: PD's median height at frame 150 is 0.104 m, 0.056 without it). Not
+    # "every vertex past x = 0.4 m": the 1 m sheet is wider than the 0.6 m table, and its
+    # corners can land on the floor beside the table (PBD at 8 x 8 with its over-relaxed blend:
+    # a vertex at (0.324, 0.005, 0.423) m, none on the top)
+    tx, ty, tz = 0.4, 0.75, 0.3
+    on_top = ((np.abs(x[:, 0]) < tx + 0.01) & (np.abs(x[:, 2]) < tz + 0.01)
+              & (x[:, 1] > ty - 0.01))
+    assert not on_top.any(), x[on_top]
     assert np.median(x[:, 1]) < 0.2
 
 
