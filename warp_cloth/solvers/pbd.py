@@ -53,8 +53,8 @@ Jacobi is order-independent (T26) up to float summation order.
 
 **Over-relaxation** (``over_relaxation``, default 1.7 for plain Jacobi PBD): the blend moves a
 vertex by ``omega`` times its averaged correction, ``x <- x + min(omega, n) sum(dx) / (n + alpha)``,
-as Macklin et al. (2014, "Unified particle physics for real-time applications", 4.2) do with
-their constraint-averaged Jacobi (``omega`` in [1, 2]); capped at the plain sum of the
+as Macklin et al. (2014, "Unified particle physics for real-time applications") do with
+their constraint-averaged Jacobi (successive over-relaxation, ``omega`` in [1, 2]); capped at the plain sum of the
 corrections (``omega <= n``), which is exact for a vertex of one constraint (T23) and for
 independent corrections, where averaging is exact only for identical ones. Averaging divides every correction by the
 vertex's constraint count (6 to 8 on a grid with shear springs), so plain Jacobi propagates a
