@@ -52,14 +52,16 @@ first fall stretch 5.7 % instead of 3.7 %. Two launches per iteration; the last 
 Jacobi is order-independent (T26) up to float summation order.
 
 **Over-relaxation** (``over_relaxation``, default 1.7 for plain Jacobi PBD): the blend moves a
-vertex by ``omega`` times its averaged correction, ``x <- x + min(omega, n) sum(dx) / (n + alpha)``,
-as Macklin et al. (2014, "Unified particle physics for real-time applications") do with
-their constraint-averaged Jacobi (successive over-relaxation, ``omega`` in [1, 2]); capped at the plain sum of the
-corrections (``omega <= n``), which is exact for a vertex of one constraint (T23) and for
-independent corrections, where averaging is exact only for identical ones. Averaging divides every correction by the
-vertex's constraint count (6 to 8 on a grid with shear springs), so plain Jacobi propagates a
-load one small fraction of an edge per iteration; a cloth held only by contact has no tethers to
-carry it. Measured at defaults (64 substeps x 10 iterations, max edge strain, ms a frame;
+vertex by ``omega`` times its averaged correction,
+``x <- x + min(omega, n) sum(dx) / (n + alpha)``, as Macklin et al. (2014, "Unified particle
+physics for real-time applications") do with their constraint-averaged Jacobi (successive
+over-relaxation, ``omega`` in [1, 2]); capped at the plain sum of the corrections
+(``omega <= n``), which is exact for a vertex of one constraint (T23) and for independent
+corrections, where averaging is exact only for identical ones. Averaging divides every
+correction by the vertex's constraint count (6 to 8 on a grid with shear springs), so plain
+Jacobi propagates a load one small fraction of an edge per iteration; a cloth held only by
+contact has no tethers to carry it. Measured at defaults (64 substeps x 10 iterations, max
+edge strain, ms a frame;
 ``omega`` 1 / 1.5 / 1.7 / 1.85, before the cap, which changed none of the 1.7 figures): the
 table's sheet, hanging over the box's edge, 8.1 % (at the stretch guard, 1,004 ms) / 6.8 % (625)
 / 5.0 % (369) / 6.6 % (381), ending at 7.9 / 6.8 / 2.6 / 2.8 %; fold 4.3 / 1.9 / 1.3 / 1.6 %
@@ -326,8 +328,8 @@ class PositionBased(Solver):
         gauss_seidel: project colour by colour in place (coloured Gauss-Seidel) instead of the
             Jacobi blend (default False).
         compliance: ``None`` (default: plain PBD), a number ``>= 0`` in m/N (XPBD, the same for
-            every distance constraint; 0 is the notes' plain PBD, without over-relaxation), or ``"springs"`` (XPBD with ``1/k`` of
-            each of the model's springs).
+            every distance constraint; 0 is the notes' plain PBD, without over-relaxation), or
+            ``"springs"`` (XPBD with ``1/k`` of each of the model's springs).
         relaxation: the Jacobi blend's ``alpha >= 0`` in ``x <- (x_acc + alpha x)/(n + alpha)``
             (default 0: plain averaging; the GAMES103 lab uses 0.2). Unused by Gauss-Seidel.
         over_relaxation: ``omega`` in ``(0, 2)``: plain PBD's Jacobi blend moves each vertex by
