@@ -472,6 +472,35 @@ def friction_guess_kernel(
         wp.atomic_add(disp, i, target - u)
 
 
+@wp.func
+def entry_energy(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3), k: float, eps: float,
+                 lam_i: float):
+    """`entry_response`'s energy alone (its Newton branch, ``projective = 0``) of an entry that
+    is not pin-held, at ``x``: ``k = kappa_dt2 / im``, ``lam_i`` the friction's normal force (0:
+    none). The line search evaluates it at five configurations per Newton iteration over every
+    entry, most of them inactive: no force, Hessian or normal's outer product here."""
+    vid = rec.vertex[e]
+    w = rec.weight[e]
+    n = rec.normal[e]
+    g = -rec.offset[e]
+    for j in range(4):
+        if vid[j] >= 0:
+            g = g + w[j] * wp.dot(n, x[vid[j]])
+    E = float(0.0)
+    if g < 0.0:
+        E = 0.5 * k * g * g
+    if lam_i > 0.0:
+        d = x[vid[0]] - rec.ref[e]
+        u = d - wp.dot(d, n) * n
+        y = wp.length(u)
+        mu = rec.friction[e]
+        if y < eps:
+            E = E + mu * lam_i * (y * y / eps - y * y * y / (3.0 * eps * eps) + eps / 3.0)
+        else:
+            E = E + mu * lam_i * y
+    return E
+
+
 @wp.kernel
 def contact_energy_kernel(
     rec: ContactRecord,
@@ -488,18 +517,29 @@ def contact_energy_kernel(
 ):
     """``E_c(x)`` (with the friction potential) into ``out[slot]`` (float64), and at each row
     ``c`` of ``x_try`` (none: an empty array) into ``out[slot + c + 1]``: one pass over the
-    record for a line search's candidates."""
+    record for a line search's candidates (`entry_energy`; what does not depend on the
+    configuration, once per entry)."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
-        on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources,
-                                         0.0)
-        if on:
+        vid = rec.vertex[e]
+        w = rec.weight[e]
+        im = float(0.0)
+        for j in range(4):
+            if vid[j] >= 0:
+                im = im + w[j] * w[j] * inv_mass[vid[j]]
+        if im <= 0.0 or pin_held(vid, w, inv_mass):
+            continue
+        k = kappa_dt2 / im
+        lam_i = float(0.0)
+        if rec.friction[e] > 0.0 and rec.kind[e] == KIND_VERTEX_OBSTACLE:
+            lam_i = lam[vid[0] * num_sources + rec.source[e]]
+        E = entry_energy(rec, e, x, k, eps, lam_i)
+        if E != 0.0:
             wp.atomic_add(out, slot, wp.float64(E))
         for c in range(x_try.shape[0]):
-            on, f, H, Hn, E = entry_response(rec, e, x_try[c], inv_mass, kappa_dt2, eps, lam,
-                                             num_sources, 0.0)
-            if on:
+            E = entry_energy(rec, e, x_try[c], k, eps, lam_i)
+            if E != 0.0:
                 wp.atomic_add(out, slot + c + 1, wp.float64(E))
 
 
