@@ -297,6 +297,15 @@ class ObstacleContact:
             self._cache = c
 
     # ------------------------------------------------------------------ the correction
+    def restart(self) -> None:
+        """A run starts (`CollisionStage.restart_span`): no list from the last `apply` for
+        the first step's iterations (`begin_iterations`), as in a first run."""
+        self._lists = None
+        for name in ("_ai_count", "_m_count"):
+            count = getattr(self, name, None)
+            if count is not None:
+                count.zero_()
+
     def apply(self, state, x_start, dt: float) -> None:
         """Project, test paths and apply the impulse (positions and velocities of ``state``).
         ``state.time`` must hold the time at the start of the step (as in `Solver.step`)."""

@@ -1043,8 +1043,11 @@ class SelfCollision:
 
     def restart_span(self) -> None:
         """The next step starts a frame (of a run from a new state: allowances back to
-        ``reach``)."""
+        ``reach``, and no contacts from the last response for `hold` to project: the last
+        run's, projected onto the new start, moved the fold under PBD 10 cm off its first
+        run)."""
         self._frame_k.zero_()
+        self.record.count.zero_()
         if self._span is not None:
             self._allow.fill_(-1.0)
             self._full.fill_(1)

@@ -197,6 +197,7 @@ class CollisionStage:
         # must tell (a solve's coupling sizes its own arrays by it: `on_record_regrown`)
         self._dropped_seen = [0, 0]
         self._regrow_listeners = []
+        self._restart_listeners = []
 
     # ------------------------------------------------------------------ what it holds
     @property
@@ -251,9 +252,19 @@ class CollisionStage:
             self.self_collision.plan(substeps, self.self_motion)
 
     def restart_span(self) -> None:
-        """The next step starts a frame (the runner calls this at the start of a run)."""
+        """The next step starts a frame (the runner calls this at the start of a run): also
+        what a solver's coupling carried from the last step (`on_restart`) is forgotten, so a
+        second run of a scene repeats the first."""
         if self.self_collision is not None:
             self.self_collision.restart_span()
+        if self.contact is not None:
+            self.contact.restart()
+        for callback in self._restart_listeners:
+            callback()
+
+    def on_restart(self, callback) -> None:
+        """``callback()`` at `restart_span` (the start of a run)."""
+        self._restart_listeners.append(callback)
 
     # ------------------------------------------------------------------ detection
     def detect(self, x_start, x_pred, dt: float, time) -> None:

@@ -843,6 +843,8 @@ class ContactCoupling:
         self._record_regrown(stage.record)
         if hasattr(stage, "on_record_regrown"):
             stage.on_record_regrown(self._record_regrown)
+        if hasattr(stage, "on_restart"):
+            stage.on_restart(self.restart)
         self._classified = False  # `friction_guess` wrote `slide` for this step
         # self-contacts inside the solve (stage.self_in_solve): their own record, each entry's
         # activity at the last assembly, and the off-diagonal Hessian as an operator term
@@ -915,6 +917,16 @@ class ContactCoupling:
                    [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
                     self.self_threads, b, diag, self.vblock, self.nblock, self.active,
                     self.self_on], device=self.device)
+
+    def restart(self) -> None:
+        """A run starts (`CollisionStage.restart_span`): the last step's normal forces, the
+        other forces and the sags (obstacles' and self-contacts') are forgotten; carried into
+        a new run's first steps they made a second run of the fold differ from the first by
+        0.9 mm."""
+        for a in (self.lam, self.sag, self.f_other, getattr(self, "self_sag", None),
+                  getattr(self, "self_sag_raw", None), getattr(self, "self_sag_last", None)):
+            if a is not None:
+                a.zero_()
 
     def _record_regrown(self, record) -> None:
         """The arrays sized by the stage's obstacle record: at construction, and when
