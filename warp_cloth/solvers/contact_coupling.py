@@ -139,6 +139,15 @@ SAG_CAP = 0.2
 
 
 @wp.func
+def coulomb_energy(mu_lam: float, y: float, eps: float):
+    """The smoothed Coulomb potential ``mu lam f0(y)`` of a tangential displacement ``y``
+    (module doc: ``f0' = f1``, quadratic-cubic below ``eps``, linear above)."""
+    if y < eps:
+        return mu_lam * (y * y / eps - y * y * y / (3.0 * eps * eps) + eps / 3.0)
+    return mu_lam * y
+
+
+@wp.func
 def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
                    inv_mass: wp.array(dtype=float), kappa_dt2: float, eps: float,
                    lam: wp.array(dtype=float), num_sources: int, projective: float):
@@ -205,7 +214,6 @@ def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
             if y < eps:
                 # f1(y) = 2y/eps - y^2/eps^2: Hessian mu lam (f1'(y) uu^T + f1(y)/y (T - uu^T))
                 c = mu * lam_i * (2.0 / eps - y / (eps * eps))
-                E = E + mu * lam_i * (y * y / eps - y * y * y / (3.0 * eps * eps) + eps / 3.0)
                 H = H + (mu * lam_i * (2.0 / eps - 2.0 * y / (eps * eps))) * uu + c * (T - uu)
             else:
                 # sliding: a constant force mu lam against u, no stiffness along u. Newton without
@@ -213,8 +221,8 @@ def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
                 # drape diverged): the implicit solver's line search and friction's initial
                 # guess (`friction_guess_kernel`) keep it from doing so
                 c = mu * lam_i / y
-                E = E + mu * lam_i * y
                 H = H + c * (T - uu)
+            E = E + coulomb_energy(mu * lam_i, y, eps)
             f = f - c * u
     return on, f, H, Hn, E
 
@@ -560,11 +568,7 @@ def entry_energy(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3), k: floa
         d = x[vid[0]] - rec.ref[e]
         u = d - wp.dot(d, n) * n
         y = wp.length(u)
-        mu = rec.friction[e]
-        if y < eps:
-            E = E + mu * lam_i * (y * y / eps - y * y * y / (3.0 * eps * eps) + eps / 3.0)
-        else:
-            E = E + mu * lam_i * y
+        E = E + coulomb_energy(rec.friction[e] * lam_i, y, eps)
     return E
 
 
