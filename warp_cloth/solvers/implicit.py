@@ -44,10 +44,21 @@ iterate costs no extra solve; the final one is reported in ``stats["residual"]``
 stops when ``r < tolerance`` (``stats["converged"]``), when an update moved no vertex by more
 than ``step_tolerance`` (the notes' ``||dx||`` test, L1776-1783; it also catches the float32
 floor of ``r``, about ``1e-7 max|x| k dt^2/m`` metres, which can exceed ``tolerance`` for stiff
-springs or large steps), or after ``newton_iterations`` solves. ``newton_iterations=1`` is Baraff and Witkin's (1998) one linear
-solve per step (notes L1043-1049); with ``initial_guess="start"`` it is exactly their linearised
-step about ``x0`` (L1913-1916, without their damping terms). It is fast but may not converge
-(T5): its residual is reported.
+springs or large steps), or after ``newton_iterations`` solves. ``newton_iterations=1`` is
+Baraff and Witkin's (1998) one linear solve per step (notes L1043-1049); with
+``initial_guess="start"`` and ``smoothing_sweeps=0`` it is exactly their linearised step about
+``x0`` (L1913-1916, without their damping terms). It is fast but may not converge (T5): its
+residual is reported.
+
+**Smoothing.** A step whose Newton iteration stopped above its tolerance (or that runs without
+one) ends with ``smoothing_sweeps`` colour-ordered nonlinear Gauss-Seidel sweeps on F
+(`warp_cloth.solvers.smoothing`): each free vertex takes a local Newton step with the springs'
+exact Hessian (projected per vertex) and a backtracking search, so F only decreases. With the
+definiteness fix Newton converges only linearly where springs are far stiffer than the
+inertia block; stopped at its cap it leaves single over-stretched edges, which the sweeps
+remove (32 x 32 hanging sheet, k = 1e6 N/m, one step a frame at 30 fps: 0.18 % max strain
+without them, 0.038 % with 4 sweeps, against 0.018 % for the converged reference). Not in
+steps with contact entries, nor with dihedral bending.
 
 **Host reads.** With ``tolerance=None`` and ``linear_tolerance=None`` a step runs fixed iteration
 counts and reads nothing back, so ``capturable`` is True and the scene runner replays steps as a
@@ -123,6 +134,7 @@ from .base import Solver
 from .common import spring_energy64_kernel, spring_stretch64, to_float64_kernel
 from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
 from .linear import CGSolver, SpringSystemOperator, make_linear_solver, spring_block_matrix
+from .smoothing import VertexSmoother
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
@@ -377,6 +389,12 @@ def objective_kernel(
 #: cap above its tolerance while gaining energy (in rounds of a quarter of them, the gain
 #: checked after each)
 ENERGY_GUARD_ROUNDS = 2
+
+#: colour-ordered Gauss-Seidel sweeps after a Newton solve that stopped above its tolerance
+#: (`smoothing`). Measured on the 32 x 32 hanging sheet, k = 1e6 N/m, one step a frame at 30
+#: fps, 15 frames (CG): max strain 0.179 % without, 0.038 % with 4, 0.041 % with 16 (what
+#: remains is long-range, Newton's part); the converged reference (1/1980 s steps) 0.018 %.
+DEFAULT_SMOOTHING_SWEEPS = 4
 
 #: with the energy guard, a line search whose four steps all raise F tries these times shorter
 LS_RETRY = 1.0 / 16.0
@@ -682,6 +700,14 @@ class ImplicitEuler(Solver):
         energy_guard: with a ``tolerance``, steps that would gain energy iterate further and
             a line search never takes a step that raises F (default True; see *Energy guard*
             above). False restores the former behaviour.
+        smoothing_sweeps: colour-ordered nonlinear Gauss-Seidel sweeps on F after a Newton
+            solve that stopped above its tolerance (or runs without one): each free vertex
+            takes a projected local Newton step with the springs' exact Hessian and a
+            backtracking search, so F only decreases (`warp_cloth.solvers.smoothing`; default
+            4, 0 = off). They remove the single over-stretched edges that Newton stopped at
+            its cap leaves on stiff, light cloth. Steps with contact entries and models with
+            dihedral bending are not smoothed (``stats["smoothing_sweeps"]``: the sweeps a
+            step ran).
         corrections: limits run after each step.
         collision: a `CollisionStage`: its contacts enter every Newton iteration (detected once
             per step from the predicted positions), and its ``resolve`` ends the step.
@@ -721,11 +747,16 @@ class ImplicitEuler(Solver):
                  check_every: int | None = None, initial_guess: str = "inertial",
                  line_search: bool = True, trace: bool = False, measure_residual: bool = False,
                  contact_stiffness: float = DEFAULT_CONTACT_STIFFNESS,
-                 energy_guard: bool = True, corrections=(), collision=None):
+                 energy_guard: bool = True, smoothing_sweeps: int = DEFAULT_SMOOTHING_SWEEPS,
+                 corrections=(), collision=None):
         super().__init__(model, corrections=corrections, collision=collision)
         if int(newton_iterations) != newton_iterations or newton_iterations < 1:
             raise ValueError(f"implicit: newton_iterations must be a positive integer, got "
                              f"{newton_iterations!r}")
+        if (isinstance(smoothing_sweeps, (bool, np.bool_))
+                or int(smoothing_sweeps) != smoothing_sweeps or smoothing_sweeps < 0):
+            raise ValueError(f"implicit: smoothing_sweeps must be an integer >= 0, got "
+                             f"{smoothing_sweeps!r}")
         if not isinstance(energy_guard, (bool, np.bool_)):
             raise ValueError(f"implicit: energy_guard must be True or False, got {energy_guard!r}")
         if tolerance is not None and not (math.isfinite(tolerance) and tolerance > 0):
@@ -800,6 +831,11 @@ class ImplicitEuler(Solver):
 
         n, d = model.num_vertices, self.device
         self.A = _NewtonOperator(model, 1.0, extra=self.implicit_terms)
+        # the sweeps after Newton (`smoothing`): springs, inertia and folded terms only; a
+        # model with another implicit term (dihedral bending) is not smoothed
+        self.smoothing_sweeps = int(smoothing_sweeps)
+        self._smoother = (VertexSmoother(model, self.A)
+                          if self.smoothing_sweeps and not self.A.extra else None)
         self.b = wp.zeros(n, dtype=wp.vec3, device=d)
         self.dx = wp.zeros(n, dtype=wp.vec3, device=d)
         self.f_ext = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -876,6 +912,9 @@ class ImplicitEuler(Solver):
             self._stats.update(self._coupling.self_stats)
         if self.linear_name == "cholesky":  # applications without a factor, over the run
             self._stats["factor_fallbacks"] = self.linear.fallbacks
+        if self._stats.get("smoothing_sweeps") and self._coupling is not None:
+            # the sweeps ran only if the step had no contact entries (a device flag)
+            self._stats["smoothing_sweeps"] *= int(self._free.numpy()[0])
         return self._stats
 
     @stats.setter
@@ -1080,6 +1119,14 @@ class ImplicitEuler(Solver):
                         continue
                     stalled = True
                     break  # stagnated (float32 floor): more iterations cannot lower the residual
+        smoothed = 0
+        if self._smoother is not None and not measured:
+            # Newton stopped short of its tolerance (or runs without one): the sweeps remove
+            # what it left at short range (`smoothing`); each move lowers F. Not in a step with
+            # contact entries (`_free`, read on the device)
+            self._smoother.sweep(x, self.disp, self.f_ext, self._scale, self.smoothing_sweeps,
+                                 self._free)
+            smoothed = self.smoothing_sweeps
         if extended:
             self._guard["extended"] += 1
         # a step with a collision stage but no contact entries measures its whole energy
@@ -1112,6 +1159,7 @@ class ImplicitEuler(Solver):
         if coupling is not None:
             coupling.end_step(x, state.v, dt, state.time)
         self._stats = {"newton_iterations": done, "inner_iterations": inner,
+                       "smoothing_sweeps": smoothed,
                        "residual": residual,
                        "converged": bool(check and residual < tol), "linear_residual": info["residual"],
                        "fallback": bool(info.get("fallback", False))}
