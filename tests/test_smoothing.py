@@ -189,3 +189,25 @@ def test_smoothing_sweeps_option_is_checked():
         with pytest.raises((ValueError, TypeError), match="smoothing_sweeps"):
             ImplicitEuler(model, smoothing_sweeps=bad)
     assert ImplicitEuler(model, smoothing_sweeps=0)._smoother is None
+
+
+def test_cli_smoothing_sweeps(tmp_usd, capsys):
+    """``--smoothing-sweeps N`` reaches the implicit solver (its method string), 0 turns the
+    sweeps off, a negative count or another solver is refused."""
+    import json
+
+    from warp_cloth.cli import main
+
+    base = ["run", "hanging", "--res", "4", "--frames", "2", "--quiet", "--json"]
+    assert main([*base, "--solver", "implicit", "--smoothing-sweeps", "2", "--out",
+                 tmp_usd]) == 0
+    assert json.loads(capsys.readouterr().out)["method"] == "implicit (8 Newton, cg, 2 sweeps)"
+    assert main([*base, "--solver", "implicit", "--smoothing-sweeps", "0", "--out",
+                 tmp_usd]) == 0
+    assert json.loads(capsys.readouterr().out)["method"] == "implicit (8 Newton, cg)"
+    for bad in (["--solver", "implicit", "--smoothing-sweeps", "-1"],
+                ["--solver", "pd", "--smoothing-sweeps", "2"]):
+        with pytest.raises(SystemExit) as e:
+            main([*base, *bad, "--out", tmp_usd + ".bad.usd"])
+        assert e.value.code == 2
+        assert "smoothing" in capsys.readouterr().err

@@ -50,6 +50,7 @@ BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stab
 SOLVER_OPTIONS = {
     "linear": ("linear", ("implicit", "pd")),
     "newton_iterations": ("newton_iterations", ("implicit",)),
+    "smoothing_sweeps": ("smoothing_sweeps", ("implicit",)),
     "iterations": ("iterations", ("pbd", "pd")),
     "gauss_seidel": ("gauss_seidel", ("pbd",)),
     "compliance": ("compliance", ("pbd",)),
@@ -84,6 +85,16 @@ def _positive_int(s):
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {s!r}") from None
     if v < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {s!r}")
+    return v
+
+
+def _nonneg_int(s):
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {s!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {s!r}")
     return v
 
 
@@ -155,6 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--linear", choices=["jacobi", "chebyshev", "cg", "cholesky"], default=None,
                    help="inner linear solver (implicit, pd; cholesky: implicit only)")
     r.add_argument("--newton-iterations", type=_positive_int, default=None, help="implicit")
+    r.add_argument("--smoothing-sweeps", type=_nonneg_int, default=None, metavar="N",
+                   help="implicit: Gauss-Seidel sweeps on the step's potential after a Newton "
+                        "solve that stopped short (default 4; 0: off)")
     r.add_argument("--iterations", type=_positive_int, default=None, help="pbd, pd")
     r.add_argument("--gauss-seidel", action="store_true", default=None, help="pbd: coloured GS")
     r.add_argument("--compliance", type=_nonneg_float, default=None, help="pbd: XPBD compliance")

@@ -1405,4 +1405,6 @@ class ImplicitEuler(Solver):
 
     def describe(self) -> str:
         it = f"{self.newton_iterations} Newton"
-        return f"implicit ({it}, {self.linear_name})"
+        sw = (f", {self.smoothing_sweeps} sweeps" if self._smoother is not None
+              else "")
+        return f"implicit ({it}, {self.linear_name}{sw})"
