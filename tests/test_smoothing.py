@@ -78,6 +78,19 @@ def test_vertex_colors_never_join_two_vertices_of_a_colour():
     assert col.min() == 0 and len(np.unique(col)) == col.max() + 1
 
 
+def test_vertex_colors_of_a_hub_with_many_neighbours():
+    """A hub joined to 70 rim vertices (a fan: more neighbours than the vectorised bitmask
+    holds) plus the rim's ring: the host fall-back colours it validly too."""
+    n = 71
+    pairs = [(0, i) for i in range(1, n)] + [(i, i % (n - 1) + 1) for i in range(1, n)]
+    p = np.array(pairs + [(b, a) for a, b in pairs])
+    p = p[np.lexsort((p[:, 1], p[:, 0]))]
+    offsets = np.searchsorted(p[:, 0], np.arange(n + 1))
+    col = vertex_colors(n, [offsets], [p[:, 1]])
+    assert (col[p[:, 0]] != col[p[:, 1]]).all() and (col >= 0).all()
+    assert len(np.unique(col)) <= 4
+
+
 def test_one_free_vertex_reaches_the_minimiser_of_its_step():
     """One free vertex on three springs to pinned corners, its inertial target far enough to
     compress one spring (the local Hessian is indefinite there and gets projected): the sweeps
@@ -188,7 +201,8 @@ def test_smoothing_sweeps_option_is_checked():
     for bad in (-1, 1.5, True, "4"):
         with pytest.raises((ValueError, TypeError), match="smoothing_sweeps"):
             ImplicitEuler(model, smoothing_sweeps=bad)
-    assert ImplicitEuler(model, smoothing_sweeps=0)._smoother is None
+    assert not ImplicitEuler(model, smoothing_sweeps=0)._smooth_on
+    assert ImplicitEuler(model).smoothing_sweeps == 4
 
 
 def test_cli_smoothing_sweeps(tmp_usd, capsys):
