@@ -57,7 +57,7 @@ exact Hessian (projected per vertex) and a backtracking search, so F only decrea
 definiteness fix Newton converges only linearly where springs are far stiffer than the
 inertia block; stopped at its cap it leaves single over-stretched edges, which the sweeps
 remove (32 x 32 hanging sheet, k = 1e6 N/m, one step a frame at 30 fps: 0.18 % max strain
-without them, 0.038 % with 4 sweeps, against 0.018 % for the converged reference; the
+without them, 0.040 % with 4 sweeps, against 0.018 % for the converged reference; the
 trajectory's error unchanged). After Baraff-Witkin's single solve they lower the trajectory's
 error too (`warp-cloth bench tradeoff`, 16 x 16 sheet, k = 1e3 N/m, one step a frame at 60
 fps: 0.50 -> 0.30 m RMS). Not in steps with contact entries, nor with dihedral bending.
@@ -394,7 +394,7 @@ ENERGY_GUARD_ROUNDS = 2
 
 #: colour-ordered Gauss-Seidel sweeps after a Newton solve that stopped above its tolerance
 #: (`smoothing`). Measured on the 32 x 32 hanging sheet, k = 1e6 N/m, one step a frame at 30
-#: fps, 15 frames (CG): max strain 0.179 % without, 0.038 % with 4, 0.041 % with 16 (what
+#: fps, 15 frames (CG): max strain 0.179 % without, 0.040 % with 4, 0.042 % with 16 (what
 #: remains is long-range, Newton's part); the converged reference (1/1980 s steps) 0.018 %.
 DEFAULT_SMOOTHING_SWEEPS = 4
 
