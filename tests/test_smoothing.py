@@ -204,6 +204,9 @@ def test_smoothing_sweeps_option_is_checked():
             ImplicitEuler(model, smoothing_sweeps=bad)
     assert not ImplicitEuler(model, smoothing_sweeps=0)._smooth_on
     assert ImplicitEuler(model).smoothing_sweeps == 4
+    # Baraff-Witkin's single solve stays the notes' step unless sweeps are asked for
+    assert not ImplicitEuler(model, newton_iterations=1)._smooth_on
+    assert ImplicitEuler(model, newton_iterations=1, smoothing_sweeps=2)._smooth_on
 
 
 def test_cli_smoothing_sweeps(tmp_usd, capsys):
@@ -221,8 +224,61 @@ def test_cli_smoothing_sweeps(tmp_usd, capsys):
                  tmp_usd]) == 0
     assert json.loads(capsys.readouterr().out)["method"] == "implicit (8 Newton, cg)"
     for bad in (["--solver", "implicit", "--smoothing-sweeps", "-1"],
-                ["--solver", "pd", "--smoothing-sweeps", "2"]):
+                ["--solver", "pbd", "--smoothing-sweeps", "2"]):
         with pytest.raises(SystemExit) as e:
             main([*base, *bad, "--out", tmp_usd + ".bad.usd"])
         assert e.value.code == 2
         assert "smoothing" in capsys.readouterr().err
+
+
+def test_projective_dynamics_sweeps_lower_f_and_keep_its_velocity_rule():
+    """Projective dynamics ends its iterations with the sweeps too: from the same state, a step
+    with them ends at a lower F (host, float64; gravity in PD's y is F's external force) than
+    the same step without, and its velocity is again (x1 - x0)/dt times the damping decay."""
+    from warp_cloth.scenes import hanging_model
+    from warp_cloth.solvers.projective import ProjectiveDynamics
+
+    model = hanging_model(res=10, stiffness=1e4, bending="quadratic", bend_stiffness=1e-3,
+                          device="cpu")
+    dt = 1.0 / 60.0
+    start = model.state()
+    warm = ProjectiveDynamics(model, smoothing_sweeps=0)
+    for _ in range(6):  # falling and swinging, not at rest
+        warm.step(start, dt)
+    x0, v0 = start.positions().astype(np.float64), start.velocities().astype(np.float64)
+    free = model.inverse_masses > 0
+    x_hat = x0 + dt * v0 * free[:, None]
+    out = {}
+    for sweeps in (0, 4):
+        st = model.state()
+        st.x.assign(start.x), st.v.assign(start.v)
+        pd = ProjectiveDynamics(model, smoothing_sweeps=sweeps)
+        pd.step(st, dt)
+        out[sweeps] = (st.positions().astype(np.float64), st.velocities(), pd)
+    F0, F4 = (_F(model, out[s][0], x_hat, dt) for s in (0, 4))
+    assert F4 < F0, (F4, F0)
+    x1, v1, pd = out[4]
+    decay = np.exp(-model.damping * dt)
+    np.testing.assert_allclose(v1[free], ((x1 - x0) / dt * decay)[free], atol=2e-4)
+    assert pd.stats["smoothing_sweeps"] == 4 and out[0][2].stats["smoothing_sweeps"] == 0
+    assert pd.describe().endswith(", 4 sweeps)")
+
+
+def test_projective_dynamics_sweeps_only_without_obstacles_and_contacts():
+    """PD on the drape (a sphere: obstacles) never sweeps, not even in its first, contact-free
+    steps above the sphere (bit for bit the run without sweeps); on a hanging sheet with
+    self-collision on and nothing near, its steps sweep."""
+    from warp_cloth.contact_scenes import drape
+
+    runs = []
+    for sweeps in (4, 0):
+        sc = drape(solver="pd", res=8, frames=6, solver_options={"smoothing_sweeps": sweeps})
+        sc.run(None, quiet=True, energy=False, progress=False)
+        runs.append(sc.state.positions())
+        assert sc.solver.stats["smoothing_sweeps"] == 0
+    assert np.array_equal(runs[0], runs[1])
+    sc = hanging(solver="pd", res=8, frames=3, self_collision=True,
+                 solver_options={"smoothing_sweeps": 4})
+    assert sc.solver.collision is not None
+    sc.run(None, quiet=True, energy=False, progress=False)
+    assert sc.solver.stats["smoothing_sweeps"] == 4

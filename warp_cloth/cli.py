@@ -50,7 +50,7 @@ BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stab
 SOLVER_OPTIONS = {
     "linear": ("linear", ("implicit", "pd")),
     "newton_iterations": ("newton_iterations", ("implicit",)),
-    "smoothing_sweeps": ("smoothing_sweeps", ("implicit",)),
+    "smoothing_sweeps": ("smoothing_sweeps", ("implicit", "pd")),
     "iterations": ("iterations", ("pbd", "pd")),
     "gauss_seidel": ("gauss_seidel", ("pbd",)),
     "compliance": ("compliance", ("pbd",)),
@@ -164,8 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="inner linear solver (implicit, pd; cholesky: implicit only)")
     r.add_argument("--newton-iterations", type=_positive_int, default=None, help="implicit")
     r.add_argument("--smoothing-sweeps", type=_nonneg_int, default=None, metavar="N",
-                   help="implicit: Gauss-Seidel sweeps on the step's potential after a Newton "
-                        "solve that stopped short (default 4; 0: off)")
+                   help="implicit, pd: Gauss-Seidel sweeps on the step's potential after its "
+                        "solve (implicit: one that stopped short; default 4; pd: default 0)")
     r.add_argument("--iterations", type=_positive_int, default=None, help="pbd, pd")
     r.add_argument("--gauss-seidel", action="store_true", default=None, help="pbd: coloured GS")
     r.add_argument("--compliance", type=_nonneg_float, default=None, help="pbd: XPBD compliance")

@@ -71,6 +71,11 @@ def ladder(methods, base_substeps: int, stiffness: float, quick: bool):
         out.append(Config("implicit", {"newton_iterations": 1, "linear": "cg", "linear_iterations": 20,
                                        "tolerance": None, "linear_tolerance": None},
                           substeps=1, strain_limit=lim))
+        if not quick:  # Baraff-Witkin with the smoothing sweeps (off for it by default)
+            out.append(Config("implicit", {"newton_iterations": 1, "linear": "cg",
+                                           "linear_iterations": 20, "tolerance": None,
+                                           "linear_tolerance": None, "smoothing_sweeps": 4},
+                              substeps=1))
     if "pbd" in methods:
         grid = [(10, 1, None), (10, 4, None)] if quick else [
             (5, 1, None), (10, 1, None), (20, 1, None), (40, 1, None), (10, 4, None), (20, 4, None),
@@ -88,6 +93,10 @@ def ladder(methods, base_substeps: int, stiffness: float, quick: bool):
         for it, lin, sub in grid:
             out.append(Config("pd", {"iterations": it, "linear": lin}, substeps=sub))
         out.append(Config("pd", {"iterations": 10, "linear": "chebyshev"}, substeps=1, strain_limit=lim))
+        if not quick:  # with the smoothing sweeps (an option for PD)
+            for sub in (1, 4):
+                out.append(Config("pd", {"iterations": 10, "linear": "chebyshev",
+                                         "smoothing_sweeps": 4}, substeps=sub))
     return out
 
 

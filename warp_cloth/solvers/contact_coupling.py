@@ -1108,3 +1108,17 @@ class ContactCoupling:
                     rows.append(pos[i])
                     us.append(math.sqrt(lam[a]) * V[:, a])
         return np.asarray(rows, dtype=np.int64), np.asarray(us, dtype=np.float64).reshape(-1, 3)
+
+
+@wp.kernel
+def contact_free_kernel(count: wp.array(dtype=int), overflow: wp.array(dtype=int),
+                        self_count: wp.array(dtype=int), self_overflow: wp.array(dtype=int),
+                        free: wp.array(dtype=int)):
+    """``free[0]`` = 1 when the step's records (obstacles; self-contacts, when given) hold no
+    entry, written or dropped: no contact term enters its Newton solve."""
+    k = count[0] + overflow[0]
+    if self_count.shape[0] > 0:
+        k += self_count[0] + self_overflow[0]
+    free[0] = 0
+    if k == 0:
+        free[0] = 1

@@ -46,8 +46,8 @@ than ``step_tolerance`` (the notes' ``||dx||`` test, L1776-1783; it also catches
 floor of ``r``, about ``1e-7 max|x| k dt^2/m`` metres, which can exceed ``tolerance`` for stiff
 springs or large steps), or after ``newton_iterations`` solves. ``newton_iterations=1`` is
 Baraff and Witkin's (1998) one linear solve per step (notes L1043-1049); with
-``initial_guess="start"`` and ``smoothing_sweeps=0`` it is exactly their linearised step about
-``x0`` (L1913-1916, without their damping terms). It is fast but may not converge (T5): its
+``initial_guess="start"`` (and no smoothing sweeps, its default) it is exactly their
+linearised step about ``x0`` (L1913-1916, without their damping terms). It is fast but may not converge (T5): its
 residual is reported.
 
 **Smoothing.** A step whose Newton iteration stopped above its tolerance (or that runs without
@@ -58,9 +58,9 @@ definiteness fix Newton converges only linearly where springs are far stiffer th
 inertia block; stopped at its cap it leaves single over-stretched edges, which the sweeps
 remove (32 x 32 hanging sheet, k = 1e6 N/m, one step a frame at 30 fps: 0.18 % max strain
 without them, 0.040 % with 4 sweeps, against 0.018 % for the converged reference; the
-trajectory's error unchanged). After Baraff-Witkin's single solve they lower the trajectory's
-error too (`warp-cloth bench tradeoff`, 16 x 16 sheet, k = 1e3 N/m, one step a frame at 60
-fps: 0.50 -> 0.30 m RMS). Not in steps with contact entries, nor with dihedral bending.
+trajectory's error unchanged). Not in steps with contact entries, nor with dihedral bending,
+nor by default after Baraff-Witkin's single solve (`warp-cloth bench tradeoff`, 16 x 16 sheet,
+k = 1e3 N/m, one step a frame at 60 fps: 0.50 -> 0.34 m RMS for 2.3 times the step's time).
 
 **Host reads.** With ``tolerance=None`` and ``linear_tolerance=None`` a step runs fixed iteration
 counts and reads nothing back, so ``capturable`` is True and the scene runner replays steps as a
@@ -134,9 +134,9 @@ from ..runstats import Note
 from ..util import launch
 from .base import Solver
 from .common import spring_energy64_kernel, spring_stretch64, to_float64_kernel
-from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
+from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling, contact_free_kernel
 from .linear import CGSolver, SpringSystemOperator, make_linear_solver, spring_block_matrix
-from .smoothing import VertexSmoother
+from .smoothing import DEFAULT_SMOOTHING_SWEEPS, VertexSmoother, check_sweeps
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
@@ -392,12 +392,6 @@ def objective_kernel(
 #: checked after each)
 ENERGY_GUARD_ROUNDS = 2
 
-#: colour-ordered Gauss-Seidel sweeps after a Newton solve that stopped above its tolerance
-#: (`smoothing`). Measured on the 32 x 32 hanging sheet, k = 1e6 N/m, one step a frame at 30
-#: fps, 15 frames (CG): max strain 0.179 % without, 0.040 % with 4, 0.042 % with 16 (what
-#: remains is long-range, Newton's part); the converged reference (1/1980 s steps) 0.018 %.
-DEFAULT_SMOOTHING_SWEEPS = 4
-
 #: with the energy guard, a line search whose four steps all raise F tries these times shorter
 LS_RETRY = 1.0 / 16.0
 
@@ -542,20 +536,6 @@ def guess_select_kernel(energy: wp.array(dtype=wp.float64), steps: wp.vec4,
     if best >= 0:
         a = steps[best]
     chosen[0] = a
-
-
-@wp.kernel
-def contact_free_kernel(count: wp.array(dtype=int), overflow: wp.array(dtype=int),
-                        self_count: wp.array(dtype=int), self_overflow: wp.array(dtype=int),
-                        free: wp.array(dtype=int)):
-    """``free[0]`` = 1 when the step's records (obstacles; self-contacts, when given) hold no
-    entry, written or dropped: no contact term enters its Newton solve."""
-    k = count[0] + overflow[0]
-    if self_count.shape[0] > 0:
-        k += self_count[0] + self_overflow[0]
-    free[0] = 0
-    if k == 0:
-        free[0] = 1
 
 
 @wp.kernel
@@ -705,9 +685,12 @@ class ImplicitEuler(Solver):
         smoothing_sweeps: colour-ordered nonlinear Gauss-Seidel sweeps on F after a Newton
             solve that stopped above its tolerance (or runs without one): each free vertex
             takes a projected local Newton step with the springs' exact Hessian and a
-            backtracking search, so F only decreases (`warp_cloth.solvers.smoothing`; default
-            4, 0 = off). They remove the single over-stretched edges that Newton stopped at
-            its cap leaves on stiff, light cloth. Steps with contact entries and models with
+            backtracking search, so F only decreases (`warp_cloth.solvers.smoothing`; 0 = off;
+            default ``None``: 4, but 0 with ``newton_iterations=1``). They remove the single
+            over-stretched edges that Newton stopped at its cap leaves on stiff, light cloth.
+            After Baraff-Witkin's one solve they cost more than they buy: on the tradeoff
+            bench's sheet they took its error from 0.50 to 0.34 m RMS for 2.3 times the step's
+            time (substeps buy more there), so that step stays the notes' unless asked. Steps with contact entries and models with
             dihedral bending are not smoothed (``stats["smoothing_sweeps"]``: the sweeps a
             step ran).
         corrections: limits run after each step.
@@ -749,16 +732,15 @@ class ImplicitEuler(Solver):
                  check_every: int | None = None, initial_guess: str = "inertial",
                  line_search: bool = True, trace: bool = False, measure_residual: bool = False,
                  contact_stiffness: float = DEFAULT_CONTACT_STIFFNESS,
-                 energy_guard: bool = True, smoothing_sweeps: int = DEFAULT_SMOOTHING_SWEEPS,
+                 energy_guard: bool = True, smoothing_sweeps: int | None = None,
                  corrections=(), collision=None):
         super().__init__(model, corrections=corrections, collision=collision)
         if int(newton_iterations) != newton_iterations or newton_iterations < 1:
             raise ValueError(f"implicit: newton_iterations must be a positive integer, got "
                              f"{newton_iterations!r}")
-        if (isinstance(smoothing_sweeps, (bool, np.bool_))
-                or int(smoothing_sweeps) != smoothing_sweeps or smoothing_sweeps < 0):
-            raise ValueError(f"implicit: smoothing_sweeps must be an integer >= 0, got "
-                             f"{smoothing_sweeps!r}")
+        if smoothing_sweeps is None:  # Baraff-Witkin's one solve stays the notes' step
+            smoothing_sweeps = DEFAULT_SMOOTHING_SWEEPS if newton_iterations != 1 else 0
+        check_sweeps(smoothing_sweeps, "implicit")
         if not isinstance(energy_guard, (bool, np.bool_)):
             raise ValueError(f"implicit: energy_guard must be True or False, got {energy_guard!r}")
         if tolerance is not None and not (math.isfinite(tolerance) and tolerance > 0):

@@ -48,6 +48,19 @@ wp.set_module_options({"enable_backward": False})
 #: local backtracking halvings before a vertex is left where it is
 LOCAL_HALVINGS = 8
 
+#: sweeps after a solve (implicit Euler: after a Newton solve that stopped above its
+#: tolerance; projective dynamics: after its iterations). Measured on the 32 x 32 hanging
+#: sheet, k = 1e6 N/m, one implicit step a frame at 30 fps, 15 frames (CG): max strain 0.179 %
+#: without, 0.040 % with 4, 0.042 % with 16 (what remains is long-range, Newton's part); the
+#: converged reference (1/1980 s steps) 0.018 %.
+DEFAULT_SMOOTHING_SWEEPS = 4
+
+
+def check_sweeps(sweeps, solver: str) -> None:
+    """A sweep count must be an integer >= 0 (``ValueError`` naming the solver otherwise)."""
+    if (isinstance(sweeps, (bool, np.bool_, str)) or int(sweeps) != sweeps or sweeps < 0):
+        raise ValueError(f"{solver}: smoothing_sweeps must be an integer >= 0, got {sweeps!r}")
+
 
 def vertex_colors(num_vertices: int, offsets, others, seed: int = 0) -> np.ndarray:
     """A colouring of the vertices (host, vectorised): no two vertices joined by an entry of
@@ -190,6 +203,25 @@ def smooth_color_kernel(x: wp.array(dtype=wp.vec3), disp: wp.array(dtype=wp.vec3
             wp.atomic_max(moved, 0, wp.length(d))
             return
         step = 0.5 * step
+
+
+@wp.kernel
+def offset_kernel(x: wp.array(dtype=wp.vec3), x_hat: wp.array(dtype=wp.vec3),
+                  out: wp.array(dtype=wp.vec3)):
+    """``out = x - x_hat`` (a solver without an exact increment sum: projective dynamics)."""
+    i = wp.tid()
+    out[i] = x[i] - x_hat[i]
+
+
+@wp.kernel
+def end_velocity_kernel(x: wp.array(dtype=wp.vec3), x0: wp.array(dtype=wp.vec3),
+                        inv_mass: wp.array(dtype=float), inv_dt: float, decay: float,
+                        free_step: wp.array(dtype=int), v: wp.array(dtype=wp.vec3)):
+    """``v = (x - x0)/dt * decay`` for free vertices again after the sweeps (projective
+    dynamics' end-of-step velocity, the same expression); nothing when ``free_step[0] == 0``."""
+    i = wp.tid()
+    if inv_mass[i] > 0.0 and free_step[0] != 0:
+        v[i] = (x[i] - x0[i]) * (inv_dt * decay)
 
 
 class VertexSmoother:
