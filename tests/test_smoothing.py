@@ -198,10 +198,15 @@ def test_stiff_light_cloth_at_one_step_a_frame_stretches_like_the_converged_refe
 
 
 def test_smoothing_sweeps_option_is_checked():
+    from warp_cloth.solvers.projective import ProjectiveDynamics
+
     model = ClothModel(TriMesh.grid(2, 2), device="cpu")
     for bad in (-1, 1.5, True, "4"):
-        with pytest.raises((ValueError, TypeError), match="smoothing_sweeps"):
+        with pytest.raises((ValueError, TypeError), match="implicit: smoothing_sweeps"):
             ImplicitEuler(model, smoothing_sweeps=bad)
+        with pytest.raises((ValueError, TypeError), match="pd: smoothing_sweeps"):
+            ProjectiveDynamics(model, smoothing_sweeps=bad)
+    assert ProjectiveDynamics(model).smoothing_sweeps == 0
     assert not ImplicitEuler(model, smoothing_sweeps=0)._smooth_on
     assert ImplicitEuler(model).smoothing_sweeps == 4
     # Baraff-Witkin's single solve stays the notes' step unless sweeps are asked for
