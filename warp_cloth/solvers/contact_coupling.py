@@ -922,6 +922,15 @@ class ContactCoupling:
                     self.self_threads, b, diag, self.vblock, self.nblock, self.active,
                     self.self_on], device=self.device)
 
+    def mark_free(self, free) -> None:
+        """``free[0]`` = 1 when this step's records (obstacles, self-contacts) hold no entry,
+        written or dropped, else 0 (`contact_free_kernel`; on the device, capturable)."""
+        rec, srec = self.record, self.self_record
+        no = self._no_flags  # an empty int array: no self record
+        launch(contact_free_kernel, 1,
+               [rec.count, rec.overflow, no if srec is None else srec.count,
+                no if srec is None else srec.overflow, free], device=self.device)
+
     def restart(self) -> None:
         """A run starts (`CollisionStage.restart_span`): the last step's normal forces, the
         other forces and the sags (obstacles' and self-contacts') are forgotten; carried into

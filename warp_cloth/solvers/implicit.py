@@ -134,7 +134,7 @@ from ..runstats import Note
 from ..util import launch
 from .base import Solver
 from .common import spring_energy64_kernel, spring_stretch64, to_float64_kernel
-from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling, contact_free_kernel
+from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
 from .linear import CGSolver, SpringSystemOperator, make_linear_solver, spring_block_matrix
 from .smoothing import DEFAULT_SMOOTHING_SWEEPS, VertexSmoother, check_sweeps
 
@@ -835,10 +835,9 @@ class ImplicitEuler(Solver):
             2 if self._guard_linear is not None else 1)
         self._energy = wp.zeros(2, dtype=wp.float64, device=d)
         self._energy32 = wp.zeros(1, dtype=wp.float32, device=d)
-        # 1 while this step's contact records are empty (`contact_free_kernel`): a collision
+        # 1 while this step's contact records are empty (`ContactCoupling.mark_free`): a collision
         # stage with nothing near (a hanging sheet with self-collision on) is no contact
         self._free = wp.ones(1, dtype=int, device=d)
-        self._no_count = wp.zeros(0, dtype=int, device=d)
         self._fallbacks_seen = 0  # (`_frame_messages`, linear="cholesky")
         self._guard = {"extended": 0, "gained": 0, "new": 0, "last": 0.0, "rejected": 0,
                        "clamped": 0, "gradient": 0, "scale": 1.0}
@@ -999,10 +998,7 @@ class ImplicitEuler(Solver):
             # its contact plane (`friction_guess_kernel`)
             self._assemble(state.x, 0, hessian=False, contact=False)
             coupling.friction_guess(state.x, self.disp, dt, self.b, project=True)
-            rec, srec = coupling.record, coupling.self_record
-            launch(contact_free_kernel, 1,
-                   [rec.count, rec.overflow, self._no_count if srec is None else srec.count,
-                    self._no_count if srec is None else srec.overflow, self._free], device=d)
+            coupling.mark_free(self._free)
         else:
             self._free.fill_(1)
         if self.line_search and self.initial_guess == "inertial":

@@ -69,7 +69,7 @@ import warp as wp
 from ..util import launch, positive_finite
 from .base import Solver
 from .common import spring_energy64_kernel, to_float64_kernel
-from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling, contact_free_kernel
+from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
 from .linear import (LINEAR_SOLVERS, SpringSystemOperator, csr_arrays, estimate_spectral_radius,
                      make_linear_solver, scalar_csr)
 from .smoothing import VertexSmoother, check_sweeps, end_velocity_kernel, offset_kernel
@@ -828,10 +828,7 @@ class ProjectiveDynamics(Solver):
             self._smooth_free = wp.ones(1, dtype=int, device=d)
         free = self._smooth_free
         if cc is not None:
-            rec, srec = cc.record, cc.self_record
-            launch(contact_free_kernel, 1,
-                   [rec.count, rec.overflow, self._no_int if srec is None else srec.count,
-                    self._no_int if srec is None else srec.overflow, free], device=d)
+            cc.mark_free(free)
         launch(offset_kernel, n, [state.x, self.y, self._smooth_offset], device=d)
         self._smoother.sweep(state.x, self._smooth_offset, self._smooth_force, 1.0 / (dt * dt),
                              self.smoothing_sweeps, free)
