@@ -1286,3 +1286,28 @@ def test_a_loaded_self_contact_ends_its_solve_at_the_thickness():
         moved[raised] = max(steps[-10:])
     assert moved[True] < 5e-6, moved
     assert moved[False] > 3e-5, moved  # the same layer without the raise
+
+
+def test_a_path_through_the_cloth_is_not_resolved_by_its_end_constraints():
+    """A step of the 3-sheet stack at 5 fps (4 steps a frame; PD): the sheet's end positions
+    ``x1`` keep every detected pair's constraint (normal and weights at the time of impact),
+    yet two of its edges pass through triangles of the same sheet (it turned in the step). The
+    response on ``x0 -> x1`` must not call that resolved: the pairs whose path comes within the
+    fail-safe gap go to the impact zones, which end it clear of itself."""
+    from pathlib import Path
+
+    from warp_cloth.contact_scenes import stack
+
+    data = np.load(Path(__file__).parent / "data" / "stack_deep_path_step.npz")
+    scene = stack(solver="pd", res=8, fps=5, frames=2, substeps=1)
+    m, sc = scene.model, scene.collision.self_collision
+    tris, edges = m.mesh.triangles, m.mesh.edges
+    assert self_crossings(data["x0"], tris, edges) == 0
+    assert self_crossings(data["x1"], tris, edges) == 3
+    state = m.state()
+    state.x.assign(data["x1"])
+    import warp as wp
+
+    sc.resolve(state, wp.array(data["x0"], dtype=wp.vec3, device=m.device), float(data["dt"]))
+    assert self_crossings(state.x.numpy(), tris, edges) == 0
+    assert sc.stats["self_zones"] > 0 and sc.stats["self_fallback_all"] == 0
