@@ -196,6 +196,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--check-intersections", action="store_true",
                    help="count the cloth's crossing edge-triangle pairs in every frame (warning "
                         "per frame with any; exit status 5 if any)")
+    r.add_argument("--retries", type=_int_at_least(0, "an integer in [0, 8]"), default=None,
+                   metavar="N",
+                   help="a frame in which a self-collision step failed (the whole cloth returned "
+                        "to its start or frozen into impact zones, or contacts dropped for want "
+                        "of room) runs again from its start with 2, 4, ... times the steps, up to "
+                        "N times (default 2; 0: off)")
     r.add_argument("--preview", action="store_true",
                    help="also write a PNG of the last frame beside the USD (OUT with .png)")
 
@@ -300,10 +306,14 @@ def cmd_run(args, parser) -> int:
         parser.error(f"--out must name a .usd, .usda or .usdc file, got {out!r}")
     if not os.path.isdir(os.path.dirname(os.path.abspath(out))):
         parser.error(f"--out: directory {os.path.dirname(os.path.abspath(out))!r} does not exist")
+    if args.retries is not None and args.retries > 8:
+        parser.error(f"--retries: expected an integer in [0, 8], got {args.retries}")
     try:
         scene = build_scene(args.scene, **kw)
     except (ValueError, TypeError, RuntimeError) as e:
         parser.error(str(e))
+    if args.retries is not None:
+        scene.retries = args.retries
     from .errors import OutputError
 
     main_thread = threading.current_thread() is threading.main_thread()

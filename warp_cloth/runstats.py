@@ -46,6 +46,10 @@ class RunStats:
     #: frames in which a step stopped short of a tolerance (an unconverged solve, a limit out of
     #: sweeps: `Solver.frame_end`), each reported on stderr with the frame unless quiet
     short_frames: int = 0
+    #: frames run again from their start with more steps because a step of theirs failed (its
+    #: self-collision returned the whole cloth to its start, or contacts were dropped for want
+    #: of room: `Scene`'s ``retries``), each reported on stderr unless quiet
+    retried_frames: int = 0
     extra: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -65,5 +69,7 @@ class RunStats:
                f"(at most {self.max_crossings} crossing pairs)")
             + (f"; {self.short_frames} frames with a step short of its tolerance"
                if self.short_frames else "")
+            + (f"; {self.retried_frames} frames run again with more steps"
+               if self.retried_frames else "")
             + (f"; wrote {self.out}" if self.out else "")
         )

@@ -1269,6 +1269,13 @@ class SelfCollision:
     #: `step`'s ``obstacles`` callable (None: no obstacles)
     _obstacles = None
 
+    #: steps of the last frame (`frame_end`) that returned the whole cloth to its start or
+    #: dropped contacts, plus one if its impact zones held most of the cloth (``frame_frozen``)
+    frame_failed = 0
+    #: the last frame's responses held on average `FROZEN_SHARE` of the free vertices in rigid
+    #: impact zones (its steps tangle the cloth everywhere)
+    frame_frozen = False
+
     def _round(self, state, x_start, dt):
         self.record.count.zero_()
         self.record.overflow.zero_()
@@ -1323,7 +1330,7 @@ class SelfCollision:
         response (measured: explicit Euler at k = 1e6 N/m and two steps a frame, far past its
         stable step, froze the whole cloth in every response and ran on without a word: without
         self-collision the divergence guard stops it), and dropped contacts (the record's room
-        is then doubled). ``(message, regrown)`` pairs; host
+        then grows). ``(message, regrown)`` pairs; host
         reads, once a frame (`CollisionStage.frame_end`)."""
         t = self.totals.numpy()
         seen = getattr(self, "_seen", None)
@@ -1339,20 +1346,28 @@ class SelfCollision:
                         "cloth into itself)", False))
         i_zv, i_resp = STAT_KEYS.index("self_zone_vertices"), STAT_KEYS.index("self_responses")
         zv, resp = t[i_zv] - seen[i_zv], t[i_resp] - seen[i_resp]
-        if resp > 0 and zv >= FROZEN_SHARE * self._free * resp:
+        self.frame_frozen = bool(resp > 0 and zv >= FROZEN_SHARE * self._free * resp)
+        if self.frame_frozen:
             out.append((f"self-collision moved on average {zv / resp:.0f} of the cloth's "
                         f"{self._free} free vertices as rigid impact zones in the frame's {resp} "
                         "response(s): most of the cloth was frozen into rigid bodies (its steps "
                         "tangle it everywhere: an unstable solver step, or cloth crushed into "
                         "itself)", False))
+        # steps of the frame that returned the whole cloth to its start or dropped contacts:
+        # the runner may run the frame again with more steps (`Scene`'s ``retries``)
+        self.frame_failed = (int(t[i_all] - seen[i_all]) + int(t[i_over] - seen[i_over])
+                             + int(self.frame_frozen))
         if t[i_all] > seen[i_all]:
             out.append((f"self-collision returned the whole cloth to its start in "
                         f"{t[i_all] - seen[i_all]} step(s): contacts the projection and the "
                         "impact zones could not resolve", False))
         if t[i_over] > seen[i_over]:
-            self.grow(2 * self.capacity)
-            out.append((f"{t[i_over] - seen[i_over]} self-contacts did not fit the record; its "
-                        f"room is doubled to {self.capacity} entries", True))
+            # at least doubled; by what was dropped (summed over the frame's detections: an
+            # upper bound) when more, so that a frame run again (`Scene`'s ``retries``) fits
+            dropped = int(t[i_over] - seen[i_over])
+            self.grow(max(2 * self.capacity, self.capacity + dropped))
+            out.append((f"{dropped} self-contacts did not fit the record; its room grows to "
+                        f"{self.capacity} entries", True))
         return out
 
     def grow(self, capacity: int) -> None:

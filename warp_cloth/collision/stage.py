@@ -365,16 +365,29 @@ class CollisionStage:
         self._pairs(state, x_start, dt, position_friction)
 
     # ------------------------------------------------------------------ reports
+    #: steps of the last frame (`frame_end`) that failed: the whole cloth returned to its start
+    #: by self-collision, or contacts dropped for want of room (obstacle or self); one more if
+    #: self-collision's impact zones held most of the cloth (``frame_frozen``)
+    frame_failed = 0
+    #: self-collision's rigid impact zones held most of the cloth in the last frame
+    #: (`SelfCollision.frame_frozen`)
+    frame_frozen = False
+
     def frame_end(self) -> list:
         """Called by the runner after each frame (host reads): ``(message, regrown)`` for each
         thing to report: responses to mesh features that ended still violated or pressed on
         pinned vertices, self-collision steps that returned the whole cloth to its start, and
         contacts dropped for want of room, obstacle or self (the record then doubles: ``regrown``
-        True, so a recorded graph must be recorded again)."""
+        True, so a recorded graph must be recorded again). ``frame_failed`` is then the number
+        of the frame's steps that returned the whole cloth to its start or dropped contacts
+        (the scene runner runs such a frame again with more steps: `Scene`'s ``retries``)."""
         out = self.features.frame_end()
         out += self._overflow_report()
+        self.frame_failed = sum(regrown for _, regrown in out)
         if self.self_collision is not None:
             out += self.self_collision.frame_end()
+            self.frame_failed += self.self_collision.frame_failed
+            self.frame_frozen = self.self_collision.frame_frozen
         coupling = getattr(self, "solve_coupling", None)  # self-contacts inside a solve
         if coupling is not None:
             out += coupling.self_frame_end()

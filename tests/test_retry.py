@@ -1,0 +1,116 @@
+"""A frame whose self-collision step failed runs again from its start with more steps
+(`Scene`'s ``retries``): the whole cloth returned to its start, or contacts dropped for want of
+room."""
+
+import numpy as np
+import pytest
+
+from warp_cloth import cli
+from warp_cloth.collision.self_collision import SelfCollision
+from warp_cloth.contact_scenes import fold
+
+
+def _force_failure(scene, at_call: int):
+    """``stage.frame_end`` reports a failed step at its ``at_call``-th call (1-based); the
+    solver's steps are logged as (dt, time at the step's start, positions at its start)."""
+    stage, solver = scene.collision, scene.solver
+    calls, steps = [], []
+    frame_end = stage.frame_end
+
+    def fake_frame_end():
+        out = frame_end()
+        calls.append(len(steps))
+        if len(calls) == at_call:
+            stage.frame_failed = 1
+        return out
+
+    step = solver.step
+
+    def logged_step(state, dt):
+        steps.append((dt, state.t, state.positions()))
+        return step(state, dt)
+
+    stage.frame_end = fake_frame_end
+    solver.step = logged_step
+    return calls, steps
+
+
+def test_a_failed_frame_runs_again_from_its_start_with_twice_the_steps(capsys):
+    scene = fold(solver="pd", res=4, frames=4, size=0.4)
+    scene.capture = False
+    n, dt = scene.substeps, scene.dt
+    calls, steps = _force_failure(scene, at_call=2)  # frame 2's first attempt
+    st = scene.run(None, energy=False, progress=False)
+    assert st.retried_frames == 1
+    # frame 1: n steps; frame 2: n steps, then 2 n of dt / 2 from the frame's start; frame 3: n
+    assert [len(s) for s in (steps,)] == [5 * n]
+    dts = [s[0] for s in steps]
+    assert dts[:2 * n] == [dt] * (2 * n) and dts[4 * n:] == [dt] * n
+    assert np.allclose(dts[2 * n:4 * n], dt / 2)
+    start1, retry = steps[n], steps[2 * n]  # frame 2's first step and its retry's first
+    assert retry[1] == pytest.approx(start1[1]) and np.array_equal(retry[2], start1[2])
+    assert steps[4 * n][1] == pytest.approx(2.0 / scene.fps, rel=1e-5)  # frame 3 starts on time
+    assert scene.state.t == pytest.approx(3.0 / scene.fps, rel=1e-5)
+    err = capsys.readouterr().err
+    assert f"note: frame 2: run again from its start with {2 * n} steps" in err
+
+
+def test_retries_off_or_a_last_failure_are_reported(capsys):
+    scene = fold(solver="pd", res=4, frames=3, size=0.4)
+    scene.capture = False
+    scene.retries = 0
+    calls, steps = _force_failure(scene, at_call=1)
+    st = scene.run(None, energy=False, progress=False)
+    assert st.retried_frames == 0 and len(steps) == 2 * scene.substeps
+    assert "run again" not in capsys.readouterr().err
+    with pytest.raises(ValueError, match="retries"):
+        type(scene)(scene.model, scene.solver, retries=9)
+    with pytest.raises(ValueError, match="retries"):
+        type(scene)(scene.model, scene.solver, retries=-1)
+
+
+def test_a_frame_that_dropped_contacts_is_written_from_a_run_with_room(capsys):
+    """A self-collision record with room for 4 entries: a frame whose steps dropped contacts
+    runs again with the grown record, so no written frame comes from a step that dropped one;
+    without retries such frames are written (and reported)."""
+    failed = {}
+    for retries in (0, 2):
+        scene = fold(solver="implicit", res=8, frames=30, size=0.6, angle=150.0)
+        scene.retries = retries
+        sc = SelfCollision(scene.model, scene.collision.self_collision.thickness, capacity=4)
+        scene.collision.self_collision = sc
+        seen = []
+        st = scene.run(None, energy=False, progress=False,
+                       on_frame=lambda f, s: seen.append(scene.collision.frame_failed))
+        failed[retries] = (sum(seen[1:]), st.retried_frames)
+        assert sc.capacity >= 64
+    assert failed[0][0] > 0 and failed[0][1] == 0
+    assert failed[2][0] == 0 and failed[2][1] > 0
+    assert "run again from its start" in capsys.readouterr().err
+
+
+def test_cli_retries_option(tmp_path, capsys):
+    out = tmp_path / "f.usd"
+    with pytest.raises(SystemExit):
+        cli.main(["run", "fold", "--res", "4", "--frames", "2", "--retries", "9",
+                  "--out", str(out)])
+    assert "--retries" in capsys.readouterr().err
+    assert cli.main(["run", "fold", "--res", "4", "--frames", "3", "--retries", "0", "--json",
+                     "--quiet", "--out", str(out)]) == 0
+    assert '"retried_frames": 0' in capsys.readouterr().out
+
+
+def test_a_cloth_frozen_into_impact_zones_frame_after_frame_is_a_divergence():
+    """Explicit Euler at k = 1e9 N/m and 2 steps a frame (a 4 x 4 hanging sheet, far past its
+    stable step): every step tangles the cloth, and self-collision holds it as rigid impact
+    zones, at 4 and 8 steps too. Intersection-free and finite, but not cloth: after
+    `FROZEN_FRAMES` such frames in a row the run ends as diverged, naming the cause."""
+    from warp_cloth.errors import SimulationDiverged
+    from warp_cloth.scene import FROZEN_FRAMES
+    from warp_cloth.scenes import build_scene
+
+    scene = build_scene("hanging", solver="explicit", res=4, frames=8, substeps=2,
+                        stiffness=1e9)
+    with pytest.raises(SimulationDiverged, match="rigid impact zones for 3 frames") as e:
+        scene.run(None, quiet=True, energy=False)
+    assert e.value.frame == 1 + FROZEN_FRAMES and FROZEN_FRAMES == 3
