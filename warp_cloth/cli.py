@@ -56,6 +56,7 @@ SOLVER_OPTIONS = {
     "compliance": ("compliance", ("pbd",)),
     "no_tethers": ("tethers", ("pbd",)),
     "over_relaxation": ("over_relaxation", ("pbd",)),
+    "blend": ("blend", ("pbd",)),
 }
 
 
@@ -172,8 +173,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-tethers", action="store_const", const=False, default=None,
                    help="pbd: no long-range attachments to the pins (on by default with pins)")
     r.add_argument("--over-relaxation", type=_positive_float, default=None, metavar="OMEGA",
-                   help="pbd: Jacobi blend over-relaxation in (0, 2) (default 1.7; 1: the "
-                        "notes' plain blend)")
+                   help="pbd: Jacobi blend over-relaxation in (0, 2) (default 1.7; 1: no "
+                        "over-relaxation)")
+    r.add_argument("--blend", choices=["constraint", "vertex"], default=None,
+                   help="pbd: Jacobi corrections shared per constraint (default: keeps the "
+                        "momentum) or averaged per vertex (the notes' blend, gains energy)")
     r.add_argument("--strain-limit", type=_range_pair, default=None, metavar="SMIN,SMAX")
     r.add_argument("--area-limit", type=_range_pair, default=None, metavar="AMIN,AMAX")
     r.add_argument("--friction", type=_nonneg_float, default=None,

@@ -73,6 +73,23 @@ cloth, 1 / 1.5: table at 40 x 40 cells 8.1 / 7.9 %, drape 40 x 40 3.1 / 2.2 %, h
 blend (T26 compares that with Gauss-Seidel). Not with Gauss-Seidel or multipliers (XPBD keeps
 ``x - x* = M^-1 grad C^T lambda`` with its own shares).
 
+**Momentum** (``blend``): averaged per vertex (the notes' blend, ``blend="vertex"``), a
+constraint between vertices of different counts ``n_i != n_j`` moves its ends by different
+fractions of its projection: it no longer keeps the pair's momentum, and the cloth gains energy.
+Measured on the fold (64 substeps x 10 iterations, no self-collision): while the lifted half fell,
+kinetic + gravitational energy rose 0.053 J above its start (on 0.19 J) by frame 11, more
+iterations did not help and 256 substeps left 0.018 J; Gauss-Seidel, explicit and implicit
+Euler lost energy there. So by default (``blend="constraint"``) each constraint moves both its
+ends by one share, ``min(omega, m)/(m + alpha)`` with ``m = max(n_i, n_j)`` (the larger count:
+at every vertex the shares of plain averaging or less), as XPBD's Jacobi below: the fold then
+loses energy like the other solvers. Measured at defaults (`python /tmp/s9/contact_table.py
+SCENES pbd`, vertex -> constraint blend; max strain, largest one-frame energy rise, ms a frame):
+fold 1.31 -> 0.23 %, 1.2e-2 -> 2.6e-7 J, 101 -> 59 ms; table 4.97 -> 3.64 %, 7.1e-3 -> 1.2e-4 J,
+369 -> 150 ms; drape 2.6 -> 2.15 %; stack 1.22 -> 1.73 %, 2.0e-4 -> 3.9e-3 J; the hanging
+sheet 2.76 -> 1.71 % (final 0.83 -> 0.42 %; its energy after 2 s 0.74 -> 1.24 J of 1.47: less
+numerical damping), at 1 / 2 / 4 substeps without the stretch guard 50 -> 52 %, 20 -> 23 %,
+10.5 -> 11.4 % (a vertex with fewer constraints than its neighbour takes a smaller share).
+
 **Gauss-Seidel** (``gauss_seidel=True``, L1297-1308): the constraints are greedily coloured once at
 set-up so that no two constraints of a colour share a vertex; each colour is then one parallel
 launch that updates positions in place. The result equals sequential Gauss-Seidel in colour
@@ -196,13 +213,17 @@ def jacobi_distance_kernel(
     escale: wp.array(dtype=float),
     inv_dt2: float,
     use_lambda: int,
+    vertex_blend: int,
     delta: wp.array(dtype=wp.vec3),
 ):
     """One thread per distance constraint: scatter its correction into ``delta`` (atomics).
 
-    With multipliers (XPBD) the correction is scaled by the constraint's own share ``escale[e] =
-    1/(max(n_i, n_j) + alpha)`` and the multiplier advances by exactly what both ends realise
-    (the blend then adds ``delta`` unscaled); see the module docstring."""
+    The correction is scaled by the constraint's own share ``escale[e]`` (plain PBD:
+    ``min(omega, m)/(m + alpha)``, XPBD: ``1/(m + alpha)``, ``m = max(n_i, n_j)``), and with
+    multipliers the multiplier advances by exactly what both ends realise; the blend then adds
+    ``delta`` unscaled. With ``vertex_blend`` (plain PBD, ``blend="vertex"``: the notes' blend)
+    the projection is scattered whole and the blend averages per vertex. See the module
+    docstring."""
     e = wp.tid()
     i = cons[e, 0]
     j = cons[e, 1]
@@ -211,6 +232,8 @@ def jacobi_distance_kernel(
     g = wp.vec3(0.0)
     if use_lambda == 0:
         g = edge_projection(x[i], x[j], wi, wj, rest[e])
+        if vertex_blend == 0:
+            g = g * escale[e]
     else:
         wsum = wi + wj
         d = x[i] - x[j]
@@ -336,6 +359,14 @@ class PositionBased(Solver):
             ``omega`` times its averaged correction (successive over-relaxation, module doc).
             ``None`` (default): `DEFAULT_OVER_RELAXATION` (1.7) for plain Jacobi PBD, 1 (the
             notes' plain blend) with Gauss-Seidel or compliance, where another value is refused.
+        blend: how plain Jacobi PBD combines the constraints' corrections: ``"constraint"``
+            (default) moves both ends of each constraint by the same share ``min(omega, m)/(m +
+            alpha)`` of its projection, ``m = max(n_i, n_j)``, so every constraint keeps the
+            momentum; ``"vertex"`` is the notes' blend (L1310-1318), each vertex's corrections
+            averaged over its own count ``n_i`` (``x <- x + min(omega, n_i) sum(dx)/(n_i +
+            alpha)``), which moves a constraint's two ends by different fractions and gains
+            energy (module docstring, *Momentum*). Unused by Gauss-Seidel and XPBD (whose
+            shares are the constraint's own).
         bending_compliance: ``None`` (default: no bending constraint) or a number ``>= 0`` in m/N:
             adds an across-edge distance constraint between the two vertices opposite every
             interior edge, with this XPBD compliance (0 = rigid).
@@ -382,8 +413,12 @@ class PositionBased(Solver):
     def __init__(self, model, *, iterations: int = 10, gauss_seidel: bool = False,
                  compliance=None, relaxation: float = 0.0, bending_compliance=None,
                  tethers=None, tether_pins: int = 2, tether_slack: float = 0.0,
-                 max_stretch="auto", over_relaxation=None, corrections=(), collision=None):
+                 max_stretch="auto", over_relaxation=None, blend: str = "constraint",
+                 corrections=(), collision=None):
         super().__init__(model, corrections=corrections, collision=collision)
+        if blend not in ("constraint", "vertex"):
+            raise ValueError(f"blend must be 'constraint' or 'vertex', got {blend!r}")
+        self.blend = blend
         if isinstance(iterations, bool) or int(iterations) != iterations or iterations < 1:
             raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
         self.iterations = int(iterations)
@@ -458,17 +493,25 @@ class PositionBased(Solver):
         # XPBD Jacobi: each constraint scaled by its own share 1/(max(n_i, n_j) + alpha), so the
         # blend adds the corrections unscaled (a sub-convex combination at every vertex) and the
         # multiplier stays consistent with the positions; plain PBD averages per vertex instead
+        # (plain PBD with ``blend="constraint"``, the default, likewise: its share
+        # min(omega, m)/(m + alpha), m = max(n_i, n_j), moves both ends by the same fraction of
+        # the projection, so each constraint keeps the momentum, module docstring)
+        self._vertex_blend = not self.use_lambda and self.blend == "vertex"
         if len(pairs):
-            escale = 1.0 / (np.maximum(count[pairs[:, 0]], count[pairs[:, 1]]) + a)
+            mx = np.maximum(count[pairs[:, 0]], count[pairs[:, 1]])
+            escale = (np.minimum(self.over_relaxation, mx) if not self.use_lambda else 1.0) \
+                / (mx + a)
         else:
             escale = np.zeros(0)
         self._escale = wp.array(escale.astype(np.float32), dtype=float, device=d)
-        if self.use_lambda:
+        if not self._vertex_blend:
             self._blend_count = wp.array((count > 0).astype(np.float32), dtype=float, device=d)
             self._blend_alpha = 0.0
+            self._blend_omega = 1.0
         else:
             self._blend_count = self._count
             self._blend_alpha = a
+            self._blend_omega = self.over_relaxation
         self._delta = wp.zeros(n, dtype=wp.vec3, device=d)
         self._xp = wp.zeros(n, dtype=wp.vec3, device=d)
         self._f = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -571,10 +614,11 @@ class PositionBased(Solver):
                         and it == iterations - 1)
                 launch(jacobi_distance_kernel, self.num_constraints,
                        [x, self._cons, self._rest, self._compliance, self._lambda, m.inv_mass,
-                        self._escale, inv_dt2, self.use_lambda, self._delta], device=d)
+                        self._escale, inv_dt2, self.use_lambda, int(self._vertex_blend),
+                        self._delta], device=d)
                 launch(jacobi_blend_kernel, m.num_vertices,
                        [x, v, self._xp, self._delta, self._blend_count, m.inv_mass,
-                        self._blend_alpha, self.over_relaxation, 1.0 / dt, int(last)],
+                        self._blend_alpha, self._blend_omega, 1.0 / dt, int(last)],
                        device=d)
                 fused = fused or last
             if self.tethers:
@@ -631,6 +675,8 @@ class PositionBased(Solver):
         kind = "gauss-seidel" if self.gauss_seidel else "jacobi"
         if self.over_relaxation != 1.0:
             kind += f" x{self.over_relaxation:g}"
+        if self._vertex_blend:
+            kind += ", vertex blend"
         s = f"pbd ({kind}, {self.iterations} it"
         if self.compliance is not None:
             s += f", compliance {self.compliance}" if isinstance(self.compliance, str) else \
