@@ -733,3 +733,9 @@ def test_the_fold_under_jacobi_pbd_gains_no_energy():
         out[blend] = max(energy[1:]) - energy[0]
     assert out["constraint"] < 1e-4, out
     assert out["vertex"] > 1e-2, out
+
+
+def test_a_bad_blend_is_refused():
+    model = corners_model(n=3)
+    with pytest.raises(ValueError, match="blend must be 'constraint' or 'vertex'"):
+        PositionBased(model, blend="edge")
