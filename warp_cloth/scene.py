@@ -32,7 +32,7 @@ DEFAULT_RETRIES = 2
 
 #: frames in a row whose self-collision held most of the cloth in rigid impact zones (after
 #: their retries) end a run as diverged: an unstable step frozen into rigid bodies is not
-#: cloth (measured: explicit Euler at k = 1e5 N/m and 2 steps a frame on a 4 x 4 hanging
+#: cloth (measured: explicit Euler at k = 1e9 N/m and 2 steps a frame on a 4 x 4 hanging
 #: sheet, far past its stable step, ran on "ok" with the cloth rigid)
 FROZEN_FRAMES = 3
 
@@ -168,8 +168,9 @@ class Scene:
         name: a label for progress output.
         retries: with a collision stage, a frame in which a step failed (self-collision
             returned the whole cloth to its start or held most of it in rigid impact zones, or
-            contacts were dropped for want of room, `CollisionStage.frame_end`) runs again from its start with twice the steps, then
-            four times, up to ``retries`` times (default 2; 0: off); the failed attempts are
+            contacts were dropped for want of room, `CollisionStage.frame_end`) runs again from
+            its start with twice the steps, then four times, up to ``retries`` times (default
+            2; 0: off), self-collision responding after every step; the failed attempts are
             reported as notes, a last attempt that fails too as a warning, and the frames run
             again are counted (``RunStats.retried_frames``; their time is in ``wall_s``). Costs
             a copy of the state a frame. Measured: the twist at one step a frame (PD) froze from
@@ -178,8 +179,8 @@ class Scene:
     """
 
     def __init__(self, model, solver, *, fps: float = 60.0, frames: int = 120, substeps=None,
-                 obstacles=(), strain_bound: float = 10.0, capture: bool = True, name: str = "scene",
-                 retries: int = DEFAULT_RETRIES):
+                 obstacles=(), strain_bound: float = 10.0, capture: bool = True,
+                 name: str = "scene", retries: int = DEFAULT_RETRIES):
         if solver.model is not model:
             raise ValueError("the solver was built for a different model")
         fps = float(fps)
@@ -232,8 +233,9 @@ class Scene:
         """The collision stage's report on the frame just run (`CollisionStage.frame_end`), and
         the frame run again from ``snap`` (its start) with twice the steps, up to ``retries``
         times, while a step of it returned the whole cloth to its start or dropped contacts, or
-        its impact zones held most of the cloth (``stage.frame_failed``). Returns the times it ran again and ``(kind, message,
-        regrown)`` triples to report (the attempts that failed as notes)."""
+        its impact zones held most of the cloth (``stage.frame_failed``); self-collision then
+        responds after every step (no spans). Returns the times it ran again and ``(kind,
+        message, regrown)`` triples to report (the attempts that failed as notes)."""
         out = [("warning", msg, regrown) for msg, regrown in stage.frame_end()]
         k, n = 0, self.substeps
         while snap is not None and k < self.retries and getattr(stage, "frame_failed", 0):
@@ -269,15 +271,17 @@ class Scene:
         and ``max_crossings``, with a warning on stderr for each frame that has any (unless
         ``quiet``). Whatever the option, a frame in which self-collision had to return the
         whole cloth to its start, or dropped contacts for want of room, is reported on stderr
-        (unless ``quiet``); room is then doubled and the frame graph recorded again.
+        (unless ``quiet``); room then grows, the frame graph is recorded again, and the frame
+        runs again with more steps (``retries``).
 
         Raises `SimulationDiverged` when a frame has a non-finite position or an edge strain above
         ``strain_bound``, or after `FROZEN_FRAMES` frames in a row whose self-collision held
-        most of the cloth in rigid impact zones; the USD file then holds the frames before it. ``on_frame(frame, state)``
-        is called after each frame is checked (for custom recording). With self-collision, a
-        cloth that passes through itself at the start raises `ValueError` (naming an edge and
-        a triangle) before anything is written: self-collision keeps an intersection-free cloth
-        so, and cannot make one (such a start held every step at its start: a frozen cloth).
+        most of the cloth in rigid impact zones; the USD file then holds the frames before it.
+        ``on_frame(frame, state)`` is called after each frame is checked (for custom
+        recording). With self-collision, a cloth that passes through itself at the start raises
+        `ValueError` (naming an edge and a triangle) before anything is written:
+        self-collision keeps an intersection-free cloth so, and cannot make one (such a start
+        held every step at its start: a frozen cloth).
         Likewise a free vertex that starts inside an obstacle (more than 0.1 mm; on a surface or
         within the contact thickness of it is fine: `_check_obstacle_start`).
         """
@@ -365,7 +369,7 @@ class Scene:
                             solver.step(state, self.dt)
                     if stage is not None:
                         # what the stage reports (host reads), and the frame run again with more
-                        # steps where a step of it failed (`_retry`)
+                        # steps where a step of it failed (`_stage_frame_end`)
                         retried, msgs = self._stage_frame_end(stage, state, snap)
                         retried_frames += retried > 0
                         for kind, msg, regrown in msgs:
