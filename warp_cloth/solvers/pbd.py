@@ -39,7 +39,9 @@ than the real one (its modes get the extra inertia). ``stats["force_mass_scale"]
 scale) and ``stats["force_scaled_vertices"]`` (those above 2) say how much, and the first frame
 with any vertex above 2 says so once (`frame_end`); more substeps make it exact.
 
-**Jacobi with atomics** (default; the notes' L1310-1318, the GPU way): one thread per constraint
+**Jacobi with atomics** (default; the notes' L1310-1318, the GPU way; as written here with
+``blend="vertex"``, the default sharing each constraint's correction instead, *Momentum*): one
+thread per constraint
 computes its mass-weighted correction (the single-spring projection, L1275-1295, shared with
 `warp_cloth.limits.StrainLimit`) and ``atomic_add``s it into a per-vertex accumulator; one thread
 per vertex blends ``x <- (x_acc + alpha x) / (n + alpha)``, written with deltas as
@@ -51,7 +53,10 @@ under-relaxes: measured on the default hanging scene (64 substeps, 10 iterations
 first fall stretch 5.7 % instead of 3.7 %. Two launches per iteration; the last blend also updates the velocity.
 Jacobi is order-independent (T26) up to float summation order.
 
-**Over-relaxation** (``over_relaxation``, default 1.7 for plain Jacobi PBD): the blend moves a
+**Over-relaxation** (``over_relaxation``, default 1.7 for plain Jacobi PBD; with the default
+``blend="constraint"`` (*Momentum* below) ``omega`` scales each constraint's share instead,
+``min(omega, m)/(m + alpha)``; the description and the figures of this paragraph are the
+per-vertex blend's, ``blend="vertex"``): the blend moves a
 vertex by ``omega`` times its averaged correction,
 ``x <- x + min(omega, n) sum(dx) / (n + alpha)``, as Macklin et al. (2014, "Unified particle
 physics for real-time applications") do with their constraint-averaged Jacobi (successive
