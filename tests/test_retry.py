@@ -67,6 +67,8 @@ def test_retries_off_or_a_last_failure_are_reported(capsys):
         type(scene)(scene.model, scene.solver, retries=9)
     with pytest.raises(ValueError, match="retries"):
         type(scene)(scene.model, scene.solver, retries=-1)
+    with pytest.raises(ValueError, match="retries must be an integer in"):
+        scene.retries = 1.5
 
 
 def test_a_frame_that_dropped_contacts_is_written_from_a_run_with_room(capsys):

@@ -192,8 +192,6 @@ class Scene:
             raise ValueError(f"substeps must be a positive integer, got {substeps}")
         if not (strain_bound > 0):
             raise ValueError(f"strain_bound must be > 0, got {strain_bound}")
-        if isinstance(retries, bool) or int(retries) != retries or not 0 <= retries <= 8:
-            raise ValueError(f"retries must be an integer in [0, 8], got {retries!r}")
         # the obstacles first: a stage made here from them sets the substeps like any other
         drawn = _scene_obstacles(model, solver, obstacles)
         if substeps is None:
@@ -223,11 +221,23 @@ class Scene:
         self.strain_bound = float(strain_bound)
         self.capture = capture
         self.name = name
-        self.retries = int(retries)
+        self.retries = retries
         self.state = model.state()
 
     def reset(self):
         self.state = self.model.state()
+
+    @property
+    def retries(self) -> int:
+        """How many times a failed frame runs again with more steps (`_stage_frame_end`)."""
+        return self._retries
+
+    @retries.setter
+    def retries(self, value) -> None:
+        if (isinstance(value, bool) or not isinstance(value, (int, np.integer))
+                or not 0 <= value <= 8):
+            raise ValueError(f"retries must be an integer in [0, 8], got {value!r}")
+        self._retries = int(value)
 
     def _stage_frame_end(self, stage, state, snap):
         """The collision stage's report on the frame just run (`CollisionStage.frame_end`), and
