@@ -139,6 +139,18 @@ def _range_pair(s):
     return lo, hi
 
 
+def _frame_span(s):
+    """``A:B`` (frames A to B, inclusive) or ``A`` (one frame), 1 <= A <= B."""
+    parts = s.split(":")
+    try:
+        lo, hi = (int(parts[0]), int(parts[-1])) if len(parts) in (1, 2) else (0, -1)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected FIRST:LAST frames, got {s!r}") from None
+    if not 1 <= lo <= hi:
+        raise argparse.ArgumentTypeError(f"expected FIRST:LAST with 1 <= FIRST <= LAST, got {s!r}")
+    return lo, hi
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="warp-cloth", description="Cloth simulation on NVIDIA Warp.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -206,6 +218,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "to its start or frozen into impact zones, or contacts dropped for want "
                         "of room) runs again from its start with 2, 4, ... times the steps, up to "
                         "N times (default 2; 0: off)")
+    r.add_argument("--ledger", type=_frame_span, default=None, metavar="FIRST:LAST",
+                   help="print where the energy of frames FIRST to LAST went, per stage of each "
+                        "step (solve, limits, obstacle contact, features, self-collision; "
+                        "`warp_cloth.ledger`); the run is eager and slower")
     r.add_argument("--preview", action="store_true",
                    help="also write a PNG of the last frame beside the USD (OUT with .png)")
 
@@ -318,6 +334,14 @@ def cmd_run(args, parser) -> int:
         parser.error(str(e))
     if args.retries is not None:
         scene.retries = args.retries
+    ledger = None
+    if args.ledger is not None:
+        if args.ledger[1] >= scene.frames:
+            parser.error(f"--ledger: frame {args.ledger[1]} is past the run's last frame "
+                         f"({scene.frames - 1})")
+        from .ledger import EnergyLedger
+
+        ledger = EnergyLedger(scene, frames=args.ledger)
     from .errors import OutputError
 
     main_thread = threading.current_thread() is threading.main_thread()
@@ -352,6 +376,8 @@ def cmd_run(args, parser) -> int:
         print(json.dumps(stats.as_dict(), indent=2, default=str))
     else:
         print(stats.summary())
+    if ledger is not None:
+        print(ledger.report())
     if args.preview:
         _write_preview(out, args.device)
     if stats.crossing_frames:

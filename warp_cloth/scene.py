@@ -178,6 +178,9 @@ class Scene:
             at frame 211; with retries 102 of 300 frames ran again with 2 steps, all resolved.
     """
 
+    #: an attached `warp_cloth.ledger.EnergyLedger` (told each frame written), or None
+    _ledger = None
+
     def __init__(self, model, solver, *, fps: float = 60.0, frames: int = 120, substeps=None,
                  obstacles=(), strain_bound: float = 10.0, capture: bool = True,
                  name: str = "scene", retries: int = DEFAULT_RETRIES):
@@ -439,6 +442,8 @@ class Scene:
                     writer.write_frame(frame, {mesh_path: x}, sim_time=frame / self.fps)
                 if on_frame is not None:
                     on_frame(frame, state)
+                if self._ledger is not None:  # `warp_cloth.ledger.EnergyLedger`: the next steps
+                    self._ledger.frame_done(frame)
                 bar.update(frame + 1)
         finally:
             if writer is not None:
