@@ -19,10 +19,11 @@ step of the frames asked for, so a rise is traced to the stage that made it:
 or ``warp-cloth run table --solver implicit --ledger 42:44``. Rows: ``solve`` (the method's
 update), ``limit NAME`` (each correction), ``obstacle contact`` (each call: the second is the
 pass after the features), ``feature friction``, ``feature response``, ``self-collision``, and
-``other`` (what the step did outside them: scripted pins, the velocity the stage's spans apply).
+``other`` (what the step did outside them: scripted pins).
 A stage run inside another is its own row and the outer row keeps the rest (explicit Euler runs the
 features inside its step; its obstacle contact, fused into its vertex update, is in ``solve``).
-A frame run again (`Scene.retries`) has the steps of every attempt. Each measurement is a few
+A frame run again (`Scene.retries`) has the steps of every attempt (the return to the frame's
+start between attempts is no step, in no row). Each measurement is a few
 launches and a host read: a diagnostic, not for timing (the scene records no graphs while a
 ledger is attached).
 
