@@ -113,9 +113,34 @@ def test_a_cloth_frozen_into_impact_zones_frame_after_frame_is_a_divergence():
 
     scene = build_scene("hanging", solver="explicit", res=4, frames=8, substeps=2,
                         stiffness=1e9)
-    with pytest.raises(SimulationDiverged, match="rigid impact zones for 3 frames") as e:
+    with pytest.raises(SimulationDiverged, match=r"froze the cloth \(most of it in rigid impact "
+                       r"zones.* for 3 frames in a row") as e:
         scene.run(None, quiet=True, energy=False)
     assert e.value.frame == 1 + FROZEN_FRAMES and FROZEN_FRAMES == 3
+
+
+def test_a_cloth_returned_to_its_start_in_most_steps_frame_after_frame_is_a_divergence():
+    """The same unstable sheet with the impact zones off (``zone_passes=0``): every failing
+    step returns the whole cloth to its start instead, at 4 and 8 steps a frame too, so the
+    cloth stands still. Finite and free of crossings, but not moving: after `FROZEN_FRAMES` such
+    frames in a row the run ends as diverged (before, it ran its 8 frames "ok", a warning a
+    frame; PBD's twist stood still so from frame 109)."""
+    from warp_cloth.collision.self_collision import SelfCollision
+    from warp_cloth.errors import SimulationDiverged
+    from warp_cloth.scene import FROZEN_FRAMES
+    from warp_cloth.scenes import build_scene
+
+    scene = build_scene("hanging", solver="explicit", res=4, frames=8, substeps=2,
+                        stiffness=1e9)
+    stage = scene.solver.collision
+    stage.self_collision = SelfCollision(scene.model, stage.self_collision.thickness,
+                                         zone_passes=0)
+    with pytest.raises(SimulationDiverged, match="whole cloth returned to its start in most "
+                       "steps\) for 3 frames in a row") as e:
+        scene.run(None, quiet=True, energy=False)
+    assert e.value.frame == FROZEN_FRAMES
+    st = stage.self_collision.stats
+    assert st["self_fallback_all_total"] > 0 and st["self_zones_total"] == 0
 
 
 def test_retries_carry_a_fast_twist_at_one_step_a_frame_through():

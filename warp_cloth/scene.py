@@ -30,10 +30,12 @@ MAX_SUBSTEPS = 100_000
 #: times the steps
 DEFAULT_RETRIES = 2
 
-#: frames in a row whose self-collision held most of the cloth in rigid impact zones (after
-#: their retries) end a run as diverged: an unstable step frozen into rigid bodies is not
-#: cloth (measured: explicit Euler at k = 1e9 N/m and 2 steps a frame on a 4 x 4 hanging
-#: sheet, far past its stable step, ran on "ok" with the cloth rigid)
+#: frames in a row whose self-collision held most of the cloth in rigid impact zones, or returned
+#: the whole cloth to its start in most of its steps (after their retries; `frame_frozen`), end
+#: a run as diverged: an unstable step frozen into rigid bodies, or standing still, is not cloth
+#: (measured: explicit Euler at k = 1e9 N/m and 2 steps a frame on a 4 x 4 hanging sheet, far
+#: past its stable step, ran on "ok" with the cloth rigid; PBD's twist stood still from frame
+#: 109 with a warning a frame)
 FROZEN_FRAMES = 3
 
 #: after a frame that ran again, the next frames run without a recorded graph until this many
@@ -289,7 +291,8 @@ class Scene:
 
         Raises `SimulationDiverged` when a frame has a non-finite position or an edge strain above
         ``strain_bound``, or after `FROZEN_FRAMES` frames in a row whose self-collision held
-        most of the cloth in rigid impact zones; the USD file then holds the frames before it.
+        most of the cloth in rigid impact zones or returned the whole cloth to its start in
+        most of its steps; the USD file then holds the frames before it.
         ``on_frame(frame, state)`` is called after each frame is checked (for custom
         recording). With self-collision, a cloth that passes through itself at the start raises
         `ValueError` (naming an edge and a triangle) before anything is written:
@@ -418,7 +421,8 @@ class Scene:
                     if frozen >= FROZEN_FRAMES:
                         raise SimulationDiverged(
                             frame, solver.name, max_strain,
-                            f"self-collision held most of the cloth in rigid impact zones for "
+                            f"self-collision froze the cloth (most of it in rigid impact zones, "
+                            f"or the whole cloth returned to its start in most steps) for "
                             f"{frozen} frames in a row (its steps tangle the cloth everywhere: "
                             "an unstable step; more substeps, or a smaller step, hold it)")
                 if frame > 0 and hasattr(solver, "frame_end"):

@@ -92,8 +92,9 @@ I_ZONES = STAT_KEYS.index("self_zones")  # the impact zones write this slot and 
 I_FALLBACK = STAT_KEYS.index("self_fallback_all")
 if STAT_KEYS[I_ZONES + 1] != "self_zone_vertices":  # pragma: no cover - a layout invariant
     raise RuntimeError("STAT_KEYS: self_zone_vertices must follow self_zones")
-#: `SelfCollision.frame_end` warns when the rigid impact zones held this share of the free
-#: vertices per response, averaged over a frame
+#: `SelfCollision.frame_end` warns (``frame_frozen``) when the rigid impact zones held this share
+#: of the free vertices per response, averaged over a frame, or when this share of the frame's
+#: responses returned the whole cloth to its start
 FROZEN_SHARE = 0.5
 #: allowances keep pairs this many thicknesses apart (1 % to spare)
 CLEAR_SPARE = wp.constant(1.01)
@@ -1273,7 +1274,8 @@ class SelfCollision:
     #: dropped contacts, plus one if its impact zones held most of the cloth (``frame_frozen``)
     frame_failed = 0
     #: the last frame's responses held on average `FROZEN_SHARE` of the free vertices in rigid
-    #: impact zones (its steps tangle the cloth everywhere)
+    #: impact zones, or at least that share of them returned the whole cloth to its start (its
+    #: steps tangle the cloth everywhere)
     frame_frozen = False
 
     def _round(self, state, x_start, dt):
@@ -1329,8 +1331,9 @@ class SelfCollision:
         rigid impact zones held on average at least `FROZEN_SHARE` of the free vertices per
         response (measured: explicit Euler at k = 1e6 N/m and two steps a frame, far past its
         stable step, froze the whole cloth in every response and ran on without a word: without
-        self-collision the divergence guard stops it), and dropped contacts (the record's room
-        then grows). ``(message, regrown)`` pairs; host
+        self-collision the divergence guard stops it) or in which at least that share of the
+        responses returned the whole cloth to its start (both ``frame_frozen``), and dropped
+        contacts (the record's room then grows). ``(message, regrown)`` pairs; host
         reads, once a frame (`CollisionStage.frame_end`)."""
         t = self.totals.numpy()
         seen = getattr(self, "_seen", None)
@@ -1346,18 +1349,28 @@ class SelfCollision:
                         "cloth into itself)", False))
         i_zv, i_resp = STAT_KEYS.index("self_zone_vertices"), STAT_KEYS.index("self_responses")
         zv, resp = t[i_zv] - seen[i_zv], t[i_resp] - seen[i_resp]
-        self.frame_frozen = bool(resp > 0 and zv >= FROZEN_SHARE * self._free * resp)
-        if self.frame_frozen:
+        zoned = bool(resp > 0 and zv >= FROZEN_SHARE * self._free * resp)
+        # a frame most of whose responses returned the whole cloth to its start did not move
+        # either (measured: PBD's twist from frame 109, 246 of 256 steps, at 128 and 256 steps
+        # a frame too, ran on with the cloth standing still)
+        returned = int(t[i_all] - seen[i_all])
+        self.frame_frozen = zoned or bool(resp > 0 and returned >= FROZEN_SHARE * resp)
+        if zoned:
             out.append((f"self-collision moved on average {zv / resp:.0f} of the cloth's "
                         f"{self._free} free vertices as rigid impact zones in the frame's {resp} "
                         "response(s): most of the cloth was frozen into rigid bodies (its steps "
+                        "tangle it everywhere: an unstable solver step, or cloth crushed into "
+                        "itself)", False))
+        elif self.frame_frozen:
+            out.append((f"self-collision returned the whole cloth to its start in {returned} of "
+                        f"the frame's {resp} response(s): the cloth was frozen (its steps "
                         "tangle it everywhere: an unstable solver step, or cloth crushed into "
                         "itself)", False))
         # steps of the frame that returned the whole cloth to its start or dropped contacts:
         # the runner may run the frame again with more steps (`Scene`'s ``retries``)
         self.frame_failed = (int(t[i_all] - seen[i_all]) + int(t[i_over] - seen[i_over])
                              + int(self.frame_frozen))
-        if t[i_all] > seen[i_all]:
+        if returned and (zoned or not self.frame_frozen):
             out.append((f"self-collision returned the whole cloth to its start in "
                         f"{t[i_all] - seen[i_all]} step(s): contacts the projection and the "
                         "impact zones could not resolve", False))
