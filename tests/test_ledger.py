@@ -74,6 +74,8 @@ def test_detach_restores_the_scene_and_its_graphs():
     solver = scene.solver
     ledger = EnergyLedger(scene, frames=(1, 2))
     assert scene.capture is False and "step" in vars(solver)
+    with pytest.raises(ValueError, match="already has a ledger"):
+        EnergyLedger(scene, frames=(1, 2))
     ledger.detach()
     assert scene.capture is True
     assert "step" not in vars(solver) and "_advance" not in vars(solver)
@@ -97,6 +99,16 @@ def test_cli_ledger_prints_the_frames_asked_for(tmp_path, capsys):
     text = capsys.readouterr().out
     table = [ln for ln in text.splitlines() if ln.startswith("| ") and ln[2].isdigit()]
     assert [ln.split("|")[1].strip() for ln in table] == ["2", "3"]
+    # with --json, one JSON document holding the ledger's steps
+    assert cli.main(["run", "hanging", "--res", "4", "--frames", "5", "--quiet", "--out", out,
+                     "--ledger", "3", "--json"]) == 0
+    import json
+
+    doc = json.loads(capsys.readouterr().out)
+    steps = doc["ledger"]
+    assert steps and {r["frame"] for r in steps} == {3}
+    for r in steps:
+        assert sum(r["parts"].values()) == pytest.approx(r["total"], abs=1e-12)
     with pytest.raises(SystemExit) as e:
         cli.main(["run", "hanging", "--res", "4", "--frames", "5", "--quiet", "--out", out,
                   "--ledger", "2:9"])

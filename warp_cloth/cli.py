@@ -373,11 +373,14 @@ def cmd_run(args, parser) -> int:
         if main_thread:
             signal.signal(signal.SIGTERM, previous)
     if args.json:
-        print(json.dumps(stats.as_dict(), indent=2, default=str))
+        d = stats.as_dict()
+        if ledger is not None:  # one JSON document: the ledger's steps under "ledger"
+            d["ledger"] = ledger.as_list()
+        print(json.dumps(d, indent=2, default=str))
     else:
         print(stats.summary())
-    if ledger is not None:
-        print(ledger.report())
+        if ledger is not None:
+            print(ledger.report())
     if args.preview:
         _write_preview(out, args.device)
     if stats.crossing_frames:

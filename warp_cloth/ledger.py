@@ -54,6 +54,9 @@ class EnergyLedger:
     """
 
     def __init__(self, scene, frames=(1, 1)):
+        if getattr(scene, "_ledger", None) is not None:
+            raise ValueError("EnergyLedger: this scene already has a ledger attached; detach it "
+                             "first")
         first, last = (int(f) for f in frames)
         if first < 1 or last < first:
             raise ValueError(f"EnergyLedger: frames must be (first, last) with 1 <= first <= last, "
@@ -165,6 +168,11 @@ class EnergyLedger:
                 acc[k] = acc.get(k, 0.0) + v
             out[frame] = (acc, tot + total, n + 1)
         return out
+
+    def as_list(self) -> list:
+        """The rows as JSON-ready dicts: ``{"frame", "step", "parts": {stage: J}, "total"}``."""
+        return [{"frame": f, "step": k, "parts": dict(parts), "total": total}
+                for f, k, parts, total in self.rows]
 
     def report(self) -> str:
         """A text table: per frame, each stage's energy change summed over its steps (J), the
