@@ -1354,25 +1354,25 @@ class SelfCollision:
         # either (measured: PBD's twist from frame 109, 246 of 256 steps, at 128 and 256 steps
         # a frame too, ran on with the cloth standing still)
         returned = int(t[i_all] - seen[i_all])
-        self.frame_frozen = zoned or bool(resp > 0 and returned >= FROZEN_SHARE * resp)
+        standing = not zoned and bool(resp > 0 and returned >= FROZEN_SHARE * resp)
+        self.frame_frozen = zoned or standing
         if zoned:
             out.append((f"self-collision moved on average {zv / resp:.0f} of the cloth's "
                         f"{self._free} free vertices as rigid impact zones in the frame's {resp} "
                         "response(s): most of the cloth was frozen into rigid bodies (its steps "
                         "tangle it everywhere: an unstable solver step, or cloth crushed into "
                         "itself)", False))
-        elif self.frame_frozen:
+        elif standing:
             out.append((f"self-collision returned the whole cloth to its start in {returned} of "
                         f"the frame's {resp} response(s): the cloth was frozen (its steps "
                         "tangle it everywhere: an unstable solver step, or cloth crushed into "
                         "itself)", False))
         # steps of the frame that returned the whole cloth to its start or dropped contacts:
         # the runner may run the frame again with more steps (`Scene`'s ``retries``)
-        self.frame_failed = (int(t[i_all] - seen[i_all]) + int(t[i_over] - seen[i_over])
-                             + int(self.frame_frozen))
-        if returned and (zoned or not self.frame_frozen):
+        self.frame_failed = returned + int(t[i_over] - seen[i_over]) + int(self.frame_frozen)
+        if returned and not standing:  # (a standing frame's message above says it)
             out.append((f"self-collision returned the whole cloth to its start in "
-                        f"{t[i_all] - seen[i_all]} step(s): contacts the projection and the "
+                        f"{returned} step(s): contacts the projection and the "
                         "impact zones could not resolve", False))
         if t[i_over] > seen[i_over]:
             # at least doubled; by what was dropped (summed over the frame's detections: an
