@@ -62,7 +62,8 @@ def test_stages_inside_the_step_are_not_counted_twice():
     scene.run(quiet=True)
     assert ledger.rows
     labels = set().union(*(r[2] for r in ledger.rows))
-    assert {"solve", "feature friction", "feature response", "self-collision"} <= labels
+    assert {"solve", "feature friction", "feature response", "self-collision",
+            "self-collision response"} <= labels
     moved = sum(abs(r[2].get("feature response", 0.0)) for r in ledger.rows)
     assert moved > 0.0  # the sheet rests on the ball: the features act
     for _, _, parts, total in ledger.rows:

@@ -18,7 +18,8 @@ step of the frames asked for, so a rise is traced to the stage that made it:
 
 or ``warp-cloth run table --solver implicit --ledger 42:44``. Rows: ``solve`` (the method's
 update), ``limit NAME`` (each correction), ``obstacle contact`` (each call: the second is the
-pass after the features), ``feature friction``, ``feature response``, ``self-collision``, and
+pass after the features), ``feature friction``, ``feature response``, ``self-collision`` (the
+hold of the last response's contacts between responses) and ``self-collision response``, and
 ``other`` (what the step did outside them: scripted pins).
 A stage run inside another is its own row and the outer row keeps the rest (explicit Euler runs the
 features inside its step; its obstacle contact, fused into its vertex update, is in ``solve``).
@@ -117,7 +118,10 @@ class EnergyLedger:
                 self._wrap(features, "friction", "feature friction")
                 self._wrap(features, "respond", "feature response")
             if getattr(stage, "self_collision", None) is not None:
+                # the response (detection rounds, impact zones) apart from what runs between
+                # responses (`hold`, the spans' bookkeeping), which stays "self-collision"
                 self._wrap(stage.self_collision, "step", "self-collision")
+                self._wrap(stage.self_collision, "resolve", "self-collision response")
         inner_step = solver.step
         ledger = self
 
