@@ -136,7 +136,7 @@ def test_a_cloth_returned_to_its_start_in_most_steps_frame_after_frame_is_a_dive
     stage.self_collision = SelfCollision(scene.model, stage.self_collision.thickness,
                                          zone_passes=0)
     with pytest.raises(SimulationDiverged, match="whole cloth returned to its start in most "
-                       "steps\) for 3 frames in a row") as e:
+                       r"steps\) for 3 frames in a row") as e:
         scene.run(None, quiet=True, energy=False)
     assert e.value.frame == FROZEN_FRAMES
     st = stage.self_collision.stats
