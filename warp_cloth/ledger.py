@@ -71,7 +71,6 @@ class EnergyLedger:
         self._nested = []
         self._wrapped = []
         self._capture = scene.capture
-        self._on_frame = None
         self.attach()
 
     # ------------------------------------------------------------------ wrapping
