@@ -87,7 +87,7 @@ def test_detach_restores_the_scene_and_its_graphs():
 
 def test_ledger_frames_are_checked():
     _, scene = _free_sheet_scene(_Lift(0.0), frames=3)
-    for bad in ((0, 2), (3, 2)):
+    for bad in ((0, 2), (3, 2), ("a", 2), (1.5, 2), 3, (1, 2, 3)):
         with pytest.raises(ValueError, match="frames"):
             EnergyLedger(scene, frames=bad)
 

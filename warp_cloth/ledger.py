@@ -58,12 +58,16 @@ class EnergyLedger:
         if getattr(scene, "_ledger", None) is not None:
             raise ValueError("EnergyLedger: this scene already has a ledger attached; detach it "
                              "first")
-        first, last = (int(f) for f in frames)
-        if first < 1 or last < first:
+        try:
+            first, last = frames
+            ok = all(int(f) == f and not isinstance(f, bool) for f in (first, last))
+        except (TypeError, ValueError):
+            ok = False
+        if not ok or first < 1 or last < first:
             raise ValueError(f"EnergyLedger: frames must be (first, last) with 1 <= first <= last, "
                              f"got {frames!r}")
         self.scene = scene
-        self.frames = (first, last)
+        self.frames = (int(first), int(last))
         self.meter = Meter(scene.model)
         self.rows = []
         self._frame = 1  # the frame whose steps run now
