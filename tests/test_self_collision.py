@@ -1176,6 +1176,44 @@ def test_a_start_that_passes_through_itself_is_refused_before_writing(tmp_path):
     assert plain.run(None, quiet=True, energy=False).frames == 3
 
 
+def test_a_start_folded_flat_onto_itself_is_refused_before_writing(tmp_path):
+    """A flat sheet with an inverted triangle (a vertex moved past its neighbours) overlaps
+    itself in one plane, which no edge-triangle crossing test sees (an edge in a triangle's
+    plane does not cross it); a jittered sheet with one such triangle froze in every response
+    and ended as diverged under every solver. `Scene.run` refuses it, naming the triangles and
+    their edge, before the output exists. A sheet in a tilted plane far from the origin, in
+    float32, is not folded anywhere (no false alarm from rounding)."""
+    from warp_cloth import ClothModel, Scene, TriMesh, make_solver
+    from warp_cloth.collision.check import folded_flat_edges
+
+    grid = TriMesh.grid(4, 4, size=0.4, plane="xz", origin=(-0.2, 0.5, -0.2))
+    x = grid.vertices.copy()
+    x[6, 0] += 0.12  # the interior vertex (1, 1) past the column of vertices at x = 0
+    flat = folded_flat_edges(x, grid.edges, grid.edge_tris, grid.triangles)
+    assert len(flat) > 0
+    model = ClothModel(grid, density=0.15)
+    model.initial_positions = x
+    stage = CollisionStage(model, [], thickness=0.005, self_collision=True)
+    scene = Scene(model, make_solver("explicit", model, collision=stage), fps=60, frames=3)
+    out = tmp_path / "folded.usd"
+    with pytest.raises(ValueError, match=r"folded flat onto itself at the start .* triangles "
+                                         r"\d+ and \d+ on edge \d+-\d+"):
+        scene.run(out, quiet=True)
+    assert not out.exists()
+    plain = Scene(model, make_solver("explicit", model), fps=60, frames=3)  # no self-collision
+    assert plain.run(None, quiet=True, energy=False).frames == 3
+
+    rot = np.linalg.qr(np.random.default_rng(3).normal(size=(3, 3)))[0]
+    tilted = (grid.vertices @ rot.T + 1000.0).astype(np.float32)
+    assert len(folded_flat_edges(tilted, grid.edges, grid.edge_tris, grid.triangles)) == 0
+    folded = grid.vertices.copy()  # a real fold of the sheet, 1 degree short of flat: not flat
+    right = folded[:, 0] > 0.0
+    a = np.radians(179.0)
+    folded[right, 0] = folded[right, 0] * np.cos(a)
+    folded[right, 1] = 0.5 + grid.vertices[right, 0] * np.sin(a)
+    assert len(folded_flat_edges(folded, grid.edges, grid.edge_tris, grid.triangles)) == 0
+
+
 def test_separate_pieces_starting_within_the_thickness_are_refused():
     """Separate pieces whose vertices start closer than the thickness (a seam written twice
     0.1 mm apart; sheets stacked 1 mm apart) were pushed to the thickness in the first step and

@@ -15,7 +15,51 @@ from ..util import launch
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
-__all__ = ["mesh_edge_crossings", "self_crossings", "SelfIntersectionChecker"]
+__all__ = ["mesh_edge_crossings", "self_crossings", "SelfIntersectionChecker", "folded_flat_edges"]
+
+
+#: two triangles on an edge lie folded flat onto each other when the far vertex of one is within
+#: this share of the shared edge's length of the other's plane (float32 rounding of a sheet in a
+#: tilted plane is ~1e-7 of it) and on the same side of the edge
+FOLDED_FLAT_TOLERANCE = 1e-6
+
+
+def folded_flat_edges(positions, edges, edge_tris, triangles) -> np.ndarray:
+    """Indices of the interior edges whose two triangles lie folded flat onto each other at
+    ``positions``: coplanar (`FOLDED_FLAT_TOLERANCE`) with their far vertices on the same side of
+    the shared edge, so that they overlap over an area (an inverted triangle in a flat sheet, a
+    vertex moved past the opposite edge of its triangle). The edge-triangle crossing test
+    (`self_crossings`) cannot see such an overlap: an edge lying in a triangle's plane does not
+    cross it. By geometry only, so a mesh's winding does not matter. Host (numpy, float64)."""
+    x = np.asarray(positions, dtype=np.float64)
+    edges = np.asarray(edges).reshape(-1, 2)
+    et = np.asarray(edge_tris).reshape(-1, 2)
+    tris = np.asarray(triangles).reshape(-1, 3)
+    inner = np.flatnonzero(et[:, 1] >= 0)
+    if len(inner) == 0:
+        return inner
+    a, b = edges[inner, 0], edges[inner, 1]
+
+    def far(t):  # the vertex of triangle t that is not on the edge
+        tv = tris[t]
+        return np.where((tv[:, 0] != a) & (tv[:, 0] != b), tv[:, 0],
+                        np.where((tv[:, 1] != a) & (tv[:, 1] != b), tv[:, 1], tv[:, 2]))
+
+    c, d = far(et[inner, 0]), far(et[inner, 1])
+    xa = x[a]
+    u = x[b] - xa
+    length = np.linalg.norm(u, axis=1)
+    u = u / np.maximum(length, 1e-300)[:, None]
+    pc, pd = x[c] - xa, x[d] - xa
+    pc = pc - (pc * u).sum(1)[:, None] * u  # perpendicular to the edge
+    pd = pd - (pd * u).sum(1)[:, None] * u
+    nc = np.linalg.norm(pc, axis=1)
+    nd = np.linalg.norm(pd, axis=1)
+    # the far vertices' directions from the edge agree: the dihedral angle is (nearly) zero
+    dot = (pc * pd).sum(1)
+    cross = np.linalg.norm(np.cross(pc, pd), axis=1)
+    flat = (dot > 0) & (cross <= FOLDED_FLAT_TOLERANCE * length * np.minimum(nc, nd))
+    return inner[flat]
 
 
 @wp.kernel
