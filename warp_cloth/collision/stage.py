@@ -303,6 +303,7 @@ class CollisionStage:
             self.features.friction(state, dt, self.pair_record, self.contact.slack,
                                    position_friction)
             self.features.respond(state, dt, self.pair_record)
+            self.features.respond_spheres_again(state, x_start, dt, self.pair_record)
             again = True
         if again and self.contact is not None:
             self.contact.apply(state, x_start, dt)
