@@ -827,10 +827,13 @@ def test_span_response_records_near_pairs_and_hold_keeps_them_apart():
 
 def test_explicit_drape_self_collision_response_adds_no_energy():
     """Explicit Euler's drape (16x16, self-collision on, spans with allowances), 120 frames run
-    step by step: no response of a span raises the energy by more than 1e-4 J (measured: 5e-5 J
-    at most, 4e-4 J summed over the ~1,000 responses), and no frame crosses itself. With the
-    thickness as the span's detection gap (no near pairs held), the responses pushed layers
-    that had sunk during the span back out at once, stretching springs: up to 3.1e-4 J."""
+    step by step: no response of a span raises the energy by more than 3e-4 J, and no frame
+    crosses itself. With the thickness as the span's detection gap (no near pairs held), the
+    responses push layers that sank during the span back out at once, stretching springs and
+    bending. Measured with the scenes' bending (`SCENE_BENDING`), largest response rise: 1.2e-4
+    J (the landing, frames 19-20; the run's ~800 responses take 3.6e-3 J out in all), 6.8e-4 J
+    with that gap. (Without bending: 1.7e-5 J, and 8.2e-5 J with that gap, which the old bound
+    of 1e-4 J no longer told apart.)"""
     from warp_cloth.diagnostics import Meter
     from warp_cloth.scenes import build_scene
 
@@ -850,7 +853,7 @@ def test_explicit_drape_self_collision_response_adds_no_energy():
     sc._span_resolve = measured
     stats = scene.run(quiet=True, check_intersections=True)
     assert stats.crossing_frames == 0
-    assert len(gains) > 120 and max(gains) < 1e-4, max(gains)
+    assert len(gains) > 120 and max(gains) < 3e-4, max(gains)
 
 
 def test_span_allowance_after_a_partial_pass_is_a_lower_bound():
