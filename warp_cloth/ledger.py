@@ -28,7 +28,8 @@ start between attempts is no step, in no row). Each measurement is a few
 launches and a host read: a diagnostic, not for timing (the scene records no graphs while a
 ledger is attached).
 
-Measured with it (2026-11-25): on the ``table`` under implicit Euler the largest one-frame rise
+Measured with it (2026-11-25, before the scenes had bending: ``bending="none"`` now): on the
+``table`` under implicit Euler the largest one-frame rise
 (frame 43, 1.4e-3 J) came from self-collision's response (+4.2e-3 and +3.5e-3 J of spring energy
 in the frame's two steps: it pushes out of the thickness the layers the solve's penalty left
 sagging) and from the vertex contact after the features (+1.6e-3 J: feature friction had slowed a
