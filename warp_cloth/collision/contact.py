@@ -306,16 +306,18 @@ class ObstacleContact:
             if count is not None:
                 count.zero_()
 
-    def apply(self, state, x_start, dt: float) -> None:
+    def apply(self, state, x_start, dt: float, again: bool = False) -> None:
         """Project, test paths and apply the impulse (positions and velocities of ``state``).
-        ``state.time`` must hold the time at the start of the step (as in `Solver.step`)."""
+        ``state.time`` must hold the time at the start of the step (as in `Solver.step`).
+        ``again``: a second pass in the step, after other responses changed velocities
+        (`CollisionStage._pairs`): friction changes velocities only (`outcome_in_frame`)."""
         self._lists = None  # lists made for iterations are stale after the step
         dt = float(dt)
         self._poses(state.time, dt, 1)
         # the list for the next step's iterations only once a solver has asked for iterations
         self._far(state.x, x_start, 1, self.iteration_margin if self._a_planes is not None
                   else 0.0)
-        self._near(state.x, x_start, state.v, dt, 1)
+        self._near(state.x, x_start, state.v, dt, 2 if again else 1)
 
     @property
     def _all_fast(self) -> bool:

@@ -306,7 +306,7 @@ class CollisionStage:
             self.features.respond_spheres_again(state, x_start, dt, self.pair_record)
             again = True
         if again and self.contact is not None:
-            self.contact.apply(state, x_start, dt)
+            self.contact.apply(state, x_start, dt, again=True)
         if self.self_collision is not None:
             # after obstacle contact, whose projection can push one layer of a fold through
             # another (measured: 88 crossing pairs on the fold); every step, or once per span
