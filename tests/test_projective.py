@@ -382,8 +382,9 @@ def test_default_inner_solver_is_cg_with_a_collision_stage():
 
 def test_pd_on_the_table_gains_no_energy_from_contact():
     """The table and drape scenes (16 x 16, 90 frames, static obstacles: nothing does work on
-    the cloth) under PD: the largest one-frame energy rise (float64 on the host) stays under
-    1e-4 J (the energy guard's tolerance is 1e-5 M |g| x 1 m a step). The contact iterations
+    the cloth) under PD: the largest one-frame energy rise stays under 5e-6 J (the energy
+    guard's tolerance is 1e-6 M |g| x 1 m a step, 1.5e-6 J here; at 1e-5, until 2026-11-25, the
+    table rose 1.0e-5 J and the drape 4.0e-5 J). The contact iterations
     must go on while the step gains energy (without: 1.3e-2 J on the drape; on the table 7e-3 J
     while the table's edge cut into the cloth, none since the box's edges are sharp features).
     The contact sag (a loaded contact's next target raised by its last sag) was needed too
@@ -405,7 +406,7 @@ def test_pd_on_the_table_gains_no_energy_from_contact():
 
     for build in (table, drape):
         both, st = rise(build)
-        assert both < 1e-4, (build.__name__, both)
+        assert both < 5e-6, (build.__name__, both)
         assert st["energy_gain_steps"] == 0 and st["contact_iterations_total"] > 0
     assert rise(drape, guard=False)[0] > 1e-3
 
