@@ -518,8 +518,9 @@ class ProjectiveDynamics(Solver):
             work, nor in a step where an obstacle moves: `ObstacleContact.still`; a device-side
             loop, `wp.capture_while`: capturable). The
             energy criterion took the drape's largest one-frame rise from 8.8e-4 J to 3e-5 J
-            (with the contact sag of `contact_coupling`; none since `ENERGY_EPS` is 1e-6); steps that end their iterations still
-            gaining are counted (``energy_gain_steps``) and reported. By the residual alone
+            (with the contact sag of `contact_coupling`; none since `ENERGY_EPS` is 1e-6);
+            steps that end their iterations still gaining more than `ENERGY_REPORT` are
+            counted (``energy_gain_steps``) and reported. By the residual alone
             (before): the largest one-frame energy gain fell from 2.3e-3 to 1.2e-3 J on the
             table scene and from 2.5e-3 to 0.9e-3 J on the drape; at rest or sliding they run
             rarely
