@@ -94,8 +94,7 @@ def run_scene(name: str, solver: str, res=None, frames=None) -> dict:
             if not ob.moving:
                 continue
             a, b = ob.pose(t[k - 1]), ob.pose(t[k])
-            if not (np.allclose(a[0], b[0], rtol=0, atol=0) and np.allclose(a[1], b[1], rtol=0,
-                                                                                atol=0)):
+            if not (np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])):
                 return False
         return True
 
