@@ -192,17 +192,21 @@ def test_checker_ignores_segments_in_a_triangles_plane():
 
 def _brute_candidates(mesh, x0, x1, gap, inv_mass):
     """Every non-adjacent (vertex, triangle) and (edge, edge) pair whose swept boxes, each
-    inflated by ``gap`` (so pairs within ``2 gap`` count), overlap: the set a conservative broad phase must find (float32 boxes,
-    computed the kernels' way)."""
+    inflated by ``gap / 2``, overlap: the set a conservative broad phase must find (float32
+    boxes, computed the kernels' way: `broadphase.padded`)."""
     x0 = np.asarray(x0, np.float32)
     x1 = np.asarray(x1, np.float32)
-    g = np.float32(gap)
-    lo_v, hi_v = np.minimum(x0, x1) - g, np.maximum(x0, x1) + g
+    g = np.float32(0.5 * gap)
+    r = np.float32(2.5e-7)
+    lo_v, hi_v = np.minimum(x0, x1), np.maximum(x0, x1)
     tris, edges = mesh.triangles, mesh.edges
-    lo_t = lo_v[tris].min(axis=1)
-    hi_t = hi_v[tris].max(axis=1)
-    lo_e = lo_v[edges].min(axis=1)
-    hi_e = hi_v[edges].max(axis=1)
+
+    def pad(lo, hi):
+        return lo - g - r * np.abs(lo), hi + g + r * np.abs(hi)
+
+    lo_t, hi_t = pad(lo_v[tris].min(axis=1), hi_v[tris].max(axis=1))
+    lo_e, hi_e = pad(lo_v[edges].min(axis=1), hi_v[edges].max(axis=1))
+    lo_v, hi_v = pad(lo_v, hi_v)
     free = inv_mass > 0
 
     def overlap(alo, ahi, blo, bhi):
@@ -260,6 +264,45 @@ def test_broad_phase_finds_every_overlapping_pair(method, where):
     assert bvt <= vt and bee <= ee  # nothing missed
     if method == "grid":  # the grid keeps only boxes that overlap: exactly the brute-force set
         assert vt == bvt and ee == bee
+
+
+@pytest.mark.parametrize("method", ["grid", "bvh"])
+@pytest.mark.parametrize("shift", [0.0, -523.7])
+def test_broad_phase_lists_every_pair_that_comes_within_the_gap(method, shift):
+    """The boxes are inflated by half the gap each: every non-adjacent pair whose elements come
+    within the gap at some time of their straight paths is a candidate (distances in float64 at
+    five times of the paths, brute force over every pair of a crumpled sheet, near the origin
+    and far from it). Many pairs lie between half the gap and the gap, so boxes inflated by a
+    quarter of it each would miss some."""
+    import warp as wp
+
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    model, rng = _crumpled()
+    x0 = model.mesh.vertices + shift
+    x1 = x0 + rng.normal(0, 0.01, x0.shape)
+    x0 = x0.astype(np.float32).astype(np.float64)  # the kernels' positions, exactly
+    x1 = x1.astype(np.float32).astype(np.float64)
+    gap = 0.1
+    sc = SelfCollision(model, 0.01, broadphase=method)
+    a0 = wp.array(x0, dtype=wp.vec3, device="cpu")
+    a1 = wp.array(x1, dtype=wp.vec3, device="cpu")
+    vt, ee = sc.candidates(a0, a1, gap)
+    tris, edges = model.mesh.triangles, model.mesh.edges
+    keys = [(v, t) for v in range(len(x0)) for t in range(len(tris)) if v not in tris[t]]
+    nvt = len(keys)
+    keys += [(e, f) for e in range(len(edges)) for f in range(e + 1, len(edges))
+             if not set(edges[e]) & set(edges[f])]
+    least = np.full(len(keys), np.inf)
+    for t in (0.0, 0.25, 0.5, 0.75, 1.0):
+        _, d = _pair_distances(model.mesh, x0 + t * (x1 - x0))
+        least = np.minimum(least, d)
+    within = [k for k, d in zip(keys[:nvt], least[:nvt]) if d < gap]
+    within_ee = [k for k, d in zip(keys[nvt:], least[nvt:]) if d < gap]
+    band = np.count_nonzero((least > 0.5 * gap) & (least < gap))
+    assert band > 100 and len(within) > 50 and len(within_ee) > 50
+    assert set(within) <= vt
+    assert set(within_ee) <= ee
 
 
 def test_broad_phase_method_is_checked():

@@ -2,11 +2,15 @@
 centres in two `wp.HashGrid`.
 
 Every step the box of each cloth triangle and edge over its path from ``x0`` to ``x1`` (start and
-end positions: a linear path stays inside the box of its ends), inflated by a pad (the contact
-thickness plus any margin), is written by one kernel and the two BVHs are refitted. A query with
-the swept box of another primitive (an obstacle feature, or a cloth vertex or edge for
-self-collision) inflated the same way returns every primitive whose box overlaps it: no pair
-whose swept boxes overlap is missed (Warp's BVH query is exact on boxes). The BVHs are built on
+end positions: a linear path stays inside the box of its ends), inflated by a pad, is written by
+one kernel and the two BVHs are refitted. A query with the swept box of another primitive (an
+obstacle feature, or a cloth vertex or edge for self-collision) inflated the same way returns
+every primitive whose box overlaps it: no pair whose swept boxes overlap is missed (Warp's BVH
+query is exact on boxes). Two elements that come within a distance ``g`` of each other at some
+time of their paths have, at that time, points less than ``g`` apart along every axis, each
+inside its element's swept box; so their boxes inflated by ``g / 2`` each overlap, and a pad of
+half the contact gap on both sides finds every pair that can come within the gap (`padded` adds
+a few float32 ulps of the coordinates, so rounding cannot shrink a box below that). The BVHs are built on
 the first call (outside any capture: the scene runner captures from its second frame) and then
 refitted; Warp records a CPU refit in a captured graph and re-runs it on replay, and on CUDA the
 refit is a kernel, so steps stay capturable.
@@ -36,7 +40,7 @@ from ..util import launch
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
-__all__ = ["ClothBroadPhase", "BROADPHASE_METHODS", "grid_radius"]
+__all__ = ["ClothBroadPhase", "BROADPHASE_METHODS", "grid_radius", "padded"]
 
 BROADPHASE_METHODS = ("grid", "bvh")
 
@@ -66,10 +70,24 @@ def box_centres_kernel(lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=w
     wp.atomic_max(rmax, slot, 0.5 * wp.length(hi - lo))
 
 
+#: relative float32 rounding allowance of a padded box's corner (`padded`)
+BOX_ROUNDING = wp.constant(2.5e-7)
+
+
 @wp.func
-def vertex_box(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), v: int, gap: float):
-    """Vertex ``v``'s swept box, inflated by ``gap``."""
-    return wp.min(x0[v], x1[v]) - wp.vec3(gap), wp.max(x0[v], x1[v]) + wp.vec3(gap)
+def padded(lo: wp.vec3, hi: wp.vec3, pad: float):
+    """The box ``lo, hi`` inflated by ``pad``, and by four float32 ulps of its corners more:
+    the rounding of ``lo - pad`` (at most one ulp of the result) cannot shrink it below the
+    exact inflation, so two boxes inflated by ``g / 2`` each overlap whenever their contents
+    come within ``g`` (module docstring), at any distance from the origin."""
+    return (lo - wp.vec3(pad) - BOX_ROUNDING * wp.abs(lo),
+            hi + wp.vec3(pad) + BOX_ROUNDING * wp.abs(hi))
+
+
+@wp.func
+def vertex_box(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3), v: int, pad: float):
+    """Vertex ``v``'s swept box, inflated by ``pad`` (`padded`)."""
+    return padded(wp.min(x0[v], x1[v]), wp.max(x0[v], x1[v]), pad)
 
 
 @wp.kernel
@@ -98,16 +116,18 @@ def cloth_bounds_kernel(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3)
             i = tris[k, c]
             lo = wp.min(lo, wp.min(x0[i], x1[i]))
             hi = wp.max(hi, wp.max(x0[i], x1[i]))
-        lowers[k] = lo - wp.vec3(pad)
-        uppers[k] = hi + wp.vec3(pad)
+        lo, hi = padded(lo, hi, pad)
+        lowers[k] = lo
+        uppers[k] = hi
     else:
         e = k - num_tris
         for c in range(2):
             i = edges[e, c]
             lo = wp.min(lo, wp.min(x0[i], x1[i]))
             hi = wp.max(hi, wp.max(x0[i], x1[i]))
-        elowers[e] = lo - wp.vec3(pad)
-        euppers[e] = hi + wp.vec3(pad)
+        lo, hi = padded(lo, hi, pad)
+        elowers[e] = lo
+        euppers[e] = hi
 
 
 class ClothBroadPhase:
