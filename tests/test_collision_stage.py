@@ -1249,3 +1249,24 @@ def test_a_second_run_of_a_scene_repeats_the_first(solver_name):
     first = scene.state.x.numpy().copy()
     scene.run(None, quiet=True, energy=False)
     assert np.array_equal(scene.state.x.numpy(), first)
+
+
+def test_contact_scenes_give_implicit_euler_their_newton_cap_unless_asked_otherwise():
+    """`contact_scenes.SCENE_NEWTON_ITERATIONS`: every contact scene runs implicit Euler at that
+    cap (in contact Newton stops at it in most steps), a user's ``newton_iterations`` wins, the
+    other solvers' options are untouched, and a scene without contact keeps the solver's own."""
+    from warp_cloth.contact_scenes import SCENE_NEWTON_ITERATIONS
+    from warp_cloth.scenes import build_scene
+    from warp_cloth.solvers.implicit import ImplicitEuler
+
+    own = ImplicitEuler.__init__.__kwdefaults__["newton_iterations"]
+    assert SCENE_NEWTON_ITERATIONS > own
+    for name in ("table", "fold"):
+        scene = build_scene(name, solver="implicit", res=4, frames=1)
+        assert scene.solver.newton_iterations == SCENE_NEWTON_ITERATIONS
+        scene = build_scene(name, solver="implicit", res=4, frames=1,
+                            solver_options={"newton_iterations": 3})
+        assert scene.solver.newton_iterations == 3
+    assert build_scene("hanging", solver="implicit", res=4,
+                       frames=1).solver.newton_iterations == own
+    assert build_scene("table", solver="pd", res=4, frames=1).solver.iterations == 10

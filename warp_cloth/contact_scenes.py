@@ -32,7 +32,7 @@ from .model import DEFAULT_DENSITY, DEFAULT_STRETCH_STIFFNESS, ClothModel
 from .scenes import _finish, _grid_shape
 
 __all__ = ["drape", "table", "spin", "mesh", "thin", "fold", "twist", "stack", "thin_parts_mesh",
-           "sheet_model", "SCENE_BENDING",
+           "sheet_model", "SCENE_BENDING", "SCENE_NEWTON_ITERATIONS",
            "asset_path"]
 
 #: the bending of every scene here (``bending``, ``bend_stiffness`` in N m), unless given: real
@@ -46,6 +46,26 @@ __all__ = ["drape", "table", "spin", "mesh", "thin", "fold", "twist", "stack", "
 #: 5.12 % / none -> 4.86 % / 4.7e-5 J; drape implicit 4.17 % -> 3.06 %, explicit 3.07 % -> 4.17
 #: %, no rise above 3.1e-5 J either way (``python`` runs of `build_scene` with `Meter`)
 SCENE_BENDING = ("quadratic", 1e-4)
+
+#: implicit Euler's Newton iterations in every scene here, unless ``solver_options`` give them
+#: (the solver's own default is 8). In contact Newton rarely reaches its tolerance (the penalty
+#: dominates the residual: most steps of these scenes stop at the cap), so the cap decides how
+#: far the springs are from balance. Measured at defaults (2026-11-25, `build_scene` runs with
+#: `Meter`, max strain and ms/frame at 8 -> 10): table 5.20 % -> 3.73 % (12: 2.95 %), drape 2.48
+#: -> 2.81 %, spin 2.84 -> 2.39 %, mesh 2.00 -> 1.69 %, fold 3.22 -> 0.75 %, stack 4.81 -> 4.00 %;
+#: about 20 % more time (drape 64 -> 80, spin 66 -> 89, fold 113 -> 144, stack 89 -> 77 ms a
+#: frame). At 8 the table's implicit run had passed 5 % (1.56 times explicit Euler's) on a
+#: trajectory moved by a change elsewhere (4.65 % before): a margin, not luck, is wanted there
+SCENE_NEWTON_ITERATIONS = 10
+
+
+def _solver_defaults(solver: str, solver_options: dict | None) -> dict:
+    """``solver_options`` with the scenes' implicit Newton cap (`SCENE_NEWTON_ITERATIONS`)
+    where not given."""
+    options = dict(solver_options or {})
+    if solver == "implicit":
+        options.setdefault("newton_iterations", SCENE_NEWTON_ITERATIONS)
+    return options
 
 
 def _cloth_defaults(model_args: dict) -> dict:
@@ -89,7 +109,8 @@ def _contact_scene(model, obstacles, *, solver, solver_options, fps, frames, sub
     stage = CollisionStage(model, [*obstacles, *extra_obstacles], thickness=thickness,
                            friction=friction, restitution=restitution, ccd=ccd,
                            self_collision=self_collision)
-    scene = _finish(model, solver, solver_options, corrections, fps, frames, substeps, (),
+    scene = _finish(model, solver, _solver_defaults(solver, solver_options),
+                    corrections, fps, frames, substeps, (),
                     strain_bound, name, collision=stage)
     scene.contact = stage.contact
     scene.collision = stage
@@ -282,7 +303,8 @@ def fold(*, solver: str = "pd", solver_options: dict | None = None, fps: float =
     model.initial_positions = x
     stage = CollisionStage(model, [Plane(), *obstacles], thickness=thickness, friction=friction,
                            restitution=restitution, self_collision=self_collision)
-    scene = _finish(model, solver, solver_options, corrections, fps, frames, substeps, (),
+    scene = _finish(model, solver, _solver_defaults(solver, solver_options),
+                    corrections, fps, frames, substeps, (),
                     strain_bound, "fold", collision=stage)
     scene.contact, scene.collision = stage.contact, stage
     return scene
@@ -328,7 +350,8 @@ def twist(*, solver: str = "pd", solver_options: dict | None = None, fps: float 
     stage = CollisionStage(model, list(obstacles), thickness=thickness,
                            self_collision=self_collision, self_solve_margin=thickness) \
         if (obstacles or self_collision) else None
-    scene = _finish(model, solver, solver_options, corrections, fps, frames, substeps, (),
+    scene = _finish(model, solver, _solver_defaults(solver, solver_options),
+                    corrections, fps, frames, substeps, (),
                     strain_bound, "twist", collision=stage)
     scene.collision = stage
     scene.contact = stage.contact if stage is not None else None
@@ -367,7 +390,8 @@ def stack(*, solver: str = "pd", solver_options: dict | None = None, fps: float 
     obs = [Sphere(radius, (0.0, radius, 0.0)), Plane(), *obstacles]
     stage = CollisionStage(model, obs, thickness=thickness, friction=friction,
                            self_collision=self_collision)
-    scene = _finish(model, solver, solver_options, corrections, fps, frames, substeps, (),
+    scene = _finish(model, solver, _solver_defaults(solver, solver_options),
+                    corrections, fps, frames, substeps, (),
                     strain_bound, "stack", collision=stage)
     scene.contact, scene.collision = stage.contact, stage
     return scene
