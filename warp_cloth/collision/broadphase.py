@@ -10,10 +10,10 @@ query is exact on boxes). Two elements that come within a distance ``g`` of each
 time of their paths have, at that time, points less than ``g`` apart along every axis, each
 inside its element's swept box; so their boxes inflated by ``g / 2`` each overlap, and a pad of
 half the contact gap on both sides finds every pair that can come within the gap (`padded` adds
-a few float32 ulps of the coordinates, so rounding cannot shrink a box below that). The BVHs are built on
-the first call (outside any capture: the scene runner captures from its second frame) and then
-refitted; Warp records a CPU refit in a captured graph and re-runs it on replay, and on CUDA the
-refit is a kernel, so steps stay capturable.
+a few float32 ulps of the coordinates, so rounding cannot shrink a box below that). The BVHs
+are built on the first call (outside any capture: the scene runner captures from its second
+frame) and then refitted; Warp records a CPU refit in a captured graph and re-runs it on
+replay, and on CUDA the refit is a kernel, so steps stay capturable.
 
 **Hash grid** (``method="grid"``): the centres of the same swept boxes are bucketed in a
 `wp.HashGrid` (one for triangles, one for edges), rebuilt every step (Warp records a CPU build in a
