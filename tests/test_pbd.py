@@ -373,6 +373,28 @@ def test_cli_runs_pbd(tmp_usd):
     assert e.value.code == 2
 
 
+def test_cli_compliance_takes_springs_and_none(tmp_usd, capsys):
+    """``--compliance springs`` (each spring's 1/k) and ``none`` (plain PBD, also where the
+    twist would give PBD the springs' compliance); anything else is a usage error."""
+    import json
+
+    from warp_cloth.cli import main
+
+    for val, method in (("springs", "compliance springs"), ("0.002", "compliance 0.002 m/N")):
+        assert main(["run", "hanging", "--solver", "pbd", "--compliance", val, "--res", "4",
+                     "--frames", "2", "--substeps", "2", "--quiet", "--json", "--out",
+                     tmp_usd]) == 0
+        assert method in json.loads(capsys.readouterr().out)["method"]
+    assert main(["run", "twist", "--solver", "pbd", "--compliance", "none", "--res", "4",
+                 "--frames", "2", "--substeps", "2", "--quiet", "--json", "--out", tmp_usd]) == 0
+    assert "compliance" not in json.loads(capsys.readouterr().out)["method"]
+    with pytest.raises(SystemExit) as e:
+        main(["run", "hanging", "--solver", "pbd", "--compliance", "stiff", "--res", "4",
+              "--frames", "2", "--quiet", "--out", tmp_usd])
+    assert e.value.code == 2
+    assert "'springs' or 'none'" in capsys.readouterr().err
+
+
 def test_cli_over_relaxation(tmp_usd, capsys):
     import json
 

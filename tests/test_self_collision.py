@@ -182,6 +182,29 @@ def test_twist_turns_its_edges_in_opposite_directions():
     assert np.allclose(a_r[far[: right.sum()]], -np.pi / 3 * t, atol=0.02)
 
 
+def test_pbd_winds_the_twist_with_its_springs_compliance():
+    """Pins that wind the cloth up impose stretch, which plain PBD's constraints (and tethers)
+    refuse: on a 10 x 10 twist turned at 2 rad/s (30 fps) its substeps pulled vertices into the
+    rope's layers and the response pushed them back until the impact zones froze the cloth
+    (diverged at frame 33). The scene gives PBD XPBD with the springs' compliance
+    (`SCENE_PBD_MOVING_PINS_COMPLIANCE`), which winds the rope on: all 45 frames, none through
+    itself, no step returned to its start; a user's compliance wins, plain PBD included."""
+    from warp_cloth.contact_scenes import SCENE_PBD_MOVING_PINS_COMPLIANCE, twist
+
+    assert SCENE_PBD_MOVING_PINS_COMPLIANCE == "springs"
+    scene = twist(solver="pbd", res=10, rate=2.0, fps=30, frames=45)
+    assert scene.solver.compliance == "springs"
+    st = scene.run(None, quiet=True, energy=False, check_intersections=True)
+    assert st.crossing_frames == 0 and st.retried_frames == 0
+    assert scene.collision.stats["self_fallback_all_total"] == 0
+    assert st.max_strain < 1.5  # the twist's own stretch (75 %), not a blow-up
+    assert twist(solver="pbd", res=4, frames=1,
+                 solver_options={"compliance": None}).solver.compliance is None
+    assert twist(solver="pbd", res=4, frames=1,
+                 solver_options={"compliance": 1e-3}).solver.compliance == 1e-3
+    assert fold(solver="pbd", res=4, frames=1).solver.compliance is None  # pins that stay
+
+
 def test_checker_ignores_segments_in_a_triangles_plane():
     """The fold's start: the hinge edges lie in the lifted half's plane, outside its triangles
     (a coplanar segment touches at most; float rounding once made that a crossing)."""

@@ -116,6 +116,18 @@ def _nonneg_float(s):
     return v
 
 
+def _compliance(s):
+    """``--compliance``: a number >= 0 (m/N), ``springs`` (each spring's ``1/k``) or ``none``
+    (plain PBD, also where a scene would give PBD a compliance: the twist's moving pins)."""
+    if s in ("springs", "none"):
+        return s
+    try:
+        return _nonneg_float(s)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0 (m/N), 'springs' or 'none', "
+                                         f"got {s!r}") from None
+
+
 def _unit_float(s):
     try:
         v = float(s)
@@ -181,7 +193,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "solve (implicit: one that stopped short; default 4; pd: default 0)")
     r.add_argument("--iterations", type=_positive_int, default=None, help="pbd, pd")
     r.add_argument("--gauss-seidel", action="store_true", default=None, help="pbd: coloured GS")
-    r.add_argument("--compliance", type=_nonneg_float, default=None, help="pbd: XPBD compliance")
+    r.add_argument("--compliance", type=_compliance, default=None,
+                   help="pbd: XPBD compliance, m/N, or 'springs' (each spring's 1/k; the twist's "
+                        "default) or 'none' (plain PBD)")
     r.add_argument("--no-tethers", action="store_const", const=False, default=None,
                    help="pbd: no long-range attachments to the pins (on by default with pins)")
     r.add_argument("--over-relaxation", type=_positive_float, default=None, metavar="OMEGA",
@@ -300,7 +314,7 @@ def cmd_run(args, parser) -> int:
         if args.solver not in solvers:
             parser.error(f"--{opt.replace('_', '-')} applies to --solver {'/'.join(solvers)}, "
                          f"not {args.solver}")
-        solver_options[name] = val
+        solver_options[name] = None if (opt == "compliance" and val == "none") else val
     kw = dict(solver=args.solver, solver_options=solver_options, fps=args.fps,
               substeps=args.substeps, corrections=_corrections(args))
     for opt, name in (("frames", "frames"), ("res", "res"), ("stiffness", "stiffness"),

@@ -59,12 +59,28 @@ SCENE_BENDING = ("quadratic", 1e-4)
 SCENE_NEWTON_ITERATIONS = 10
 
 
-def _solver_defaults(solver: str, solver_options: dict | None) -> dict:
+#: PBD's compliance in a scene whose pins follow a path (`twist`), unless ``solver_options``
+#: give one: XPBD with each spring's own ``1/k`` (`PositionBased` ``compliance="springs"``).
+#: Pins that move apart or wind the cloth up impose stretch, and plain PBD's constraints (with
+#: their tethers) are inextensible: on the twist, once the rope's layers (kept a thickness
+#: apart) needed more length than the edges had, each substep's projection pulled vertices up
+#: to 20 mm into the layers around them (76 m/s) and the self-collision response pushed them
+#: back, until its impact zones failed and returned the whole cloth to its start in every step
+#: (frozen from frame ~111 of 600, then stopped as diverged). The material's own compliance
+#: lets the cloth stretch as the springs say, as implicit Euler and projective dynamics do
+#: there. Measured: docs/bench/selfcollision.md (*PBD on the twist*)
+SCENE_PBD_MOVING_PINS_COMPLIANCE = "springs"
+
+
+def _solver_defaults(solver: str, solver_options: dict | None, moving_pins: bool = False) -> dict:
     """``solver_options`` with the scenes' implicit Newton cap (`SCENE_NEWTON_ITERATIONS`)
-    where not given."""
+    and, where pins follow a path (``moving_pins``), PBD's compliance
+    (`SCENE_PBD_MOVING_PINS_COMPLIANCE`), where not given."""
     options = dict(solver_options or {})
     if solver == "implicit":
         options.setdefault("newton_iterations", SCENE_NEWTON_ITERATIONS)
+    if solver == "pbd" and moving_pins:
+        options.setdefault("compliance", SCENE_PBD_MOVING_PINS_COMPLIANCE)
     return options
 
 
@@ -350,7 +366,7 @@ def twist(*, solver: str = "pd", solver_options: dict | None = None, fps: float 
     stage = CollisionStage(model, list(obstacles), thickness=thickness,
                            self_collision=self_collision, self_solve_margin=thickness) \
         if (obstacles or self_collision) else None
-    scene = _finish(model, solver, _solver_defaults(solver, solver_options),
+    scene = _finish(model, solver, _solver_defaults(solver, solver_options, moving_pins=True),
                     corrections, fps, frames, substeps, (),
                     strain_bound, "twist", collision=stage)
     scene.collision = stage
