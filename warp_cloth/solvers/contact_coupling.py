@@ -615,6 +615,66 @@ def contact_energy_kernel(
 
 
 @wp.kernel
+def contact_line_energy_kernel(
+    rec: ContactRecord,
+    x: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    free: wp.array(dtype=float),
+    steps: wp.vec4,
+    inv_mass: wp.array(dtype=float),
+    kappa_dt2: float,
+    eps: float,
+    lam: wp.array(dtype=float),
+    num_sources: int,
+    num_threads: int,
+    out: wp.array(dtype=wp.float64),
+    slot: int,
+):
+    """`contact_energy_kernel` along a line: ``E_c`` at ``x`` into ``out[slot]`` and at
+    ``x + a_c d`` (``a_c = steps[c]``, ``d = free * dx``: a line search's candidates) into
+    ``out[slot + c + 1]``. An entry's gap is affine in the positions, ``g(x + a d) = g(x) + a
+    g'(d)``, so the normal penalty at every candidate costs two dot products per vertex, not
+    one per vertex and candidate (most of a self-contact record is inactive at all five);
+    an entry with friction (nonlinear in its vertex) is evaluated at each candidate."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        vid = rec.vertex[e]
+        w = rec.weight[e]
+        n = rec.normal[e]
+        im = float(0.0)
+        g0 = -rec.offset[e]
+        gd = float(0.0)
+        for j in range(4):
+            v = vid[j]
+            if v >= 0:
+                im = im + w[j] * w[j] * inv_mass[v]
+                g0 = g0 + w[j] * wp.dot(n, x[v])
+                gd = gd + w[j] * wp.dot(n, dx[v] * free[v])
+        if im <= 0.0 or pin_held(vid, w, inv_mass):
+            continue
+        k = kappa_dt2 / im
+        lam_i = float(0.0)
+        if rec.friction[e] > 0.0 and rec.kind[e] == KIND_VERTEX_OBSTACLE:
+            lam_i = lam[vid[0] * num_sources + rec.source[e]]
+        for c in range(5):
+            a = float(0.0)
+            if c > 0:
+                a = steps[c - 1]
+            g = g0 + a * gd
+            E = float(0.0)
+            if g < 0.0:
+                E = 0.5 * k * g * g
+            if lam_i > 0.0:  # a vertex entry: its tangential displacement at the candidate
+                i = vid[0]
+                d = x[i] + a * (dx[i] * free[i]) - rec.ref[e]
+                u = d - wp.dot(d, n) * n
+                E = E + coulomb_energy(rec.friction[e] * lam_i, wp.length(u), eps)
+            if E != 0.0:
+                wp.atomic_add(out, slot + c, wp.float64(E))
+
+
+@wp.kernel
 def pd_contact_kernel(
     rec: ContactRecord,
     x: wp.array(dtype=wp.vec3),
@@ -1033,6 +1093,18 @@ class ContactCoupling:
             launch(contact_energy_kernel, self.self_threads,
                    [self.self_record, x, x_try, self.model.inv_mass, *self._args(dt)[:-1],
                     self.self_threads, out, slot], device=self.device)
+
+    def energy_line(self, x, dx, free, steps, out, dt: float, slot: int = 0) -> None:
+        """`energy` at ``x`` added to ``out[slot]`` and at ``x + a_j free dx`` (``a_j`` the
+        components of the vec4 ``steps``) to ``out[slot + j + 1]``: a line search's
+        candidates, without their positions (`contact_line_energy_kernel`)."""
+        launch(contact_line_energy_kernel, self.threads,
+               [self.record, x, dx, free, steps, self.model.inv_mass, *self._args(dt), out,
+                slot], device=self.device)
+        if self.self_record is not None:
+            launch(contact_line_energy_kernel, self.self_threads,
+                   [self.self_record, x, dx, free, steps, self.model.inv_mass,
+                    *self._args(dt)[:-1], self.self_threads, out, slot], device=self.device)
 
     def end_step(self, x, v, dt: float, time=None) -> None:
         """After the solve: the normal forces for the next step's friction (bounded by the load

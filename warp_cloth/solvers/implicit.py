@@ -1392,7 +1392,7 @@ class ImplicitEuler(Solver):
                     t.energy(xc, self._ls_views[j])
             launch(add_float32_kernel, len(configs), [self._ls_energy32, E], device=d)
         if self._coupling is not None and self.collision is not None:
-            self._coupling.energy_configs(x, self._ls_try, E, self._dt)
+            self._coupling.energy_line(x, self.dx, self.A.free, steps, E, self._dt)
 
     def describe(self) -> str:
         it = f"{self.newton_iterations} Newton"
