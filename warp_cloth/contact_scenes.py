@@ -68,7 +68,8 @@ SCENE_NEWTON_ITERATIONS = 10
 #: back, until its impact zones failed and returned the whole cloth to its start in every step
 #: (frozen from frame ~111 of 600, then stopped as diverged). The material's own compliance
 #: lets the cloth stretch as the springs say, as implicit Euler and projective dynamics do
-#: there. Measured: docs/bench/selfcollision.md (*PBD on the twist*)
+#: there: the default twist then winds on to frame 257 (frozen there; 111 before), no crossing.
+#: Measured: docs/bench/selfcollision.md (*PBD on the twist*)
 SCENE_PBD_MOVING_PINS_COMPLIANCE = "springs"
 
 
