@@ -547,73 +547,6 @@ def friction_guess_kernel(
         wp.atomic_add(disp, i, target - u)
 
 
-@wp.func
-def entry_energy(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3), k: float, eps: float,
-                 lam_i: float):
-    """`entry_response`'s energy alone (its Newton branch, ``projective = 0``) of an entry that
-    is not pin-held, at ``x``: ``k = kappa_dt2 / im``, ``lam_i`` the friction's normal force (0:
-    none). The line search evaluates it at five configurations per Newton iteration over every
-    entry, most of them inactive: no force, Hessian or normal's outer product here."""
-    vid = rec.vertex[e]
-    w = rec.weight[e]
-    n = rec.normal[e]
-    g = -rec.offset[e]
-    for j in range(4):
-        if vid[j] >= 0:
-            g = g + w[j] * wp.dot(n, x[vid[j]])
-    E = float(0.0)
-    if g < 0.0:
-        E = 0.5 * k * g * g
-    if lam_i > 0.0:
-        d = x[vid[0]] - rec.ref[e]
-        u = d - wp.dot(d, n) * n
-        y = wp.length(u)
-        E = E + coulomb_energy(rec.friction[e] * lam_i, y, eps)
-    return E
-
-
-@wp.kernel
-def contact_energy_kernel(
-    rec: ContactRecord,
-    x: wp.array(dtype=wp.vec3),
-    x_try: wp.array2d(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
-    kappa_dt2: float,
-    eps: float,
-    lam: wp.array(dtype=float),
-    num_sources: int,
-    num_threads: int,
-    out: wp.array(dtype=wp.float64),
-    slot: int,
-):
-    """``E_c(x)`` (with the friction potential) into ``out[slot]`` (float64), and at each row
-    ``c`` of ``x_try`` (none: an empty array) into ``out[slot + c + 1]``: one pass over the
-    record for a line search's candidates (`entry_energy`; what does not depend on the
-    configuration, once per entry)."""
-    t = wp.tid()
-    count = wp.min(rec.count[0], rec.vertex.shape[0])
-    for e in range(t, count, num_threads):
-        vid = rec.vertex[e]
-        w = rec.weight[e]
-        im = float(0.0)
-        for j in range(4):
-            if vid[j] >= 0:
-                im = im + w[j] * w[j] * inv_mass[vid[j]]
-        if im <= 0.0 or pin_held(vid, w, inv_mass):
-            continue
-        k = kappa_dt2 / im
-        lam_i = float(0.0)
-        if rec.friction[e] > 0.0 and rec.kind[e] == KIND_VERTEX_OBSTACLE:
-            lam_i = lam[vid[0] * num_sources + rec.source[e]]
-        E = entry_energy(rec, e, x, k, eps, lam_i)
-        if E != 0.0:
-            wp.atomic_add(out, slot, wp.float64(E))
-        for c in range(x_try.shape[0]):
-            E = entry_energy(rec, e, x_try[c], k, eps, lam_i)
-            if E != 0.0:
-                wp.atomic_add(out, slot + c + 1, wp.float64(E))
-
-
 @wp.kernel
 def contact_line_energy_kernel(
     rec: ContactRecord,
@@ -630,14 +563,20 @@ def contact_line_energy_kernel(
     out: wp.array(dtype=wp.float64),
     slot: int,
 ):
-    """`contact_energy_kernel` along a line: ``E_c`` at ``x`` into ``out[slot]`` and at
-    ``x + a_c d`` (``a_c = steps[c]``, ``d = free * dx``: a line search's candidates) into
-    ``out[slot + c + 1]``. An entry's gap is affine in the positions, ``g(x + a d) = g(x) + a
-    g'(d)``, so the normal penalty at every candidate costs two dot products per vertex, not
-    one per vertex and candidate (most of a self-contact record is inactive at all five);
-    an entry with friction (nonlinear in its vertex) is evaluated at each candidate."""
+    """``E_c`` (with the friction potential) at ``x`` into ``out[slot]`` (float64) and, with a
+    direction ``dx`` (none: an empty array), at ``x + a_c d`` (``a_c = steps[c]``, ``d = free *
+    dx``: a line search's candidates) into ``out[slot + c + 1]``: one pass over the record. An
+    entry's gap is affine in the positions, ``g(x + a d) = g(x) + a g'(d)``, so the normal
+    penalty at every candidate costs two dot products per vertex, not one per vertex and
+    candidate (most of a self-contact record is inactive at all five: the fold's contact energy
+    36.7 -> 24.6 ms a frame); an entry with friction (nonlinear in its vertex) is evaluated at
+    each candidate. Pin-held entries (`pin_held`) have no energy here."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
+    line = dx.shape[0] > 0
+    configs = int(1)
+    if line:
+        configs = 5
     for e in range(t, count, num_threads):
         vid = rec.vertex[e]
         w = rec.weight[e]
@@ -650,14 +589,15 @@ def contact_line_energy_kernel(
             if v >= 0:
                 im = im + w[j] * w[j] * inv_mass[v]
                 g0 = g0 + w[j] * wp.dot(n, x[v])
-                gd = gd + w[j] * wp.dot(n, dx[v] * free[v])
+                if line:
+                    gd = gd + w[j] * wp.dot(n, dx[v] * free[v])
         if im <= 0.0 or pin_held(vid, w, inv_mass):
             continue
         k = kappa_dt2 / im
         lam_i = float(0.0)
         if rec.friction[e] > 0.0 and rec.kind[e] == KIND_VERTEX_OBSTACLE:
             lam_i = lam[vid[0] * num_sources + rec.source[e]]
-        for c in range(5):
+        for c in range(configs):
             a = float(0.0)
             if c > 0:
                 a = steps[c - 1]
@@ -667,7 +607,9 @@ def contact_line_energy_kernel(
                 E = 0.5 * k * g * g
             if lam_i > 0.0:  # a vertex entry: its tangential displacement at the candidate
                 i = vid[0]
-                d = x[i] + a * (dx[i] * free[i]) - rec.ref[e]
+                d = x[i] - rec.ref[e]
+                if c > 0:  # (only along a line)
+                    d = d + a * (dx[i] * free[i])
                 u = d - wp.dot(d, n) * n
                 E = E + coulomb_energy(rec.friction[e] * lam_i, wp.length(u), eps)
             if E != 0.0:
@@ -901,7 +843,7 @@ class ContactCoupling:
         self.sag_cap = SAG_CAP * stage.thickness if has_obstacles else 0.0
         self._no_flags = wp.zeros(0, dtype=int, device=self.device)
         self._no_vec = wp.zeros(0, dtype=wp.vec3, device=self.device)
-        self._no_configs = wp.zeros((0, 0), dtype=wp.vec3, device=self.device)
+        self._no_free = wp.zeros(0, dtype=float, device=self.device)
         # sized by the obstacle record: `pairs_on`, `slide` (per entry: driven past static
         # friction this step, PD) and the threads (again whenever the stage regrows it)
         self._record_regrown(stage.record)
@@ -1081,18 +1023,7 @@ class ContactCoupling:
 
     def energy(self, x, out, dt: float, slot: int = 0) -> None:
         """``E_c(x)`` added to ``out[slot]`` (a float64 array)."""
-        self.energy_configs(x, self._no_configs, out, dt, slot)
-
-    def energy_configs(self, x, x_try, out, dt: float, slot: int = 0) -> None:
-        """`energy` at ``x`` added to ``out[slot]`` and at each row ``j`` of ``x_try`` to
-        ``out[slot + j + 1]``: one launch a record (a line search's candidates)."""
-        launch(contact_energy_kernel, self.threads,
-               [self.record, x, x_try, self.model.inv_mass, *self._args(dt), out, slot],
-               device=self.device)
-        if self.self_record is not None:
-            launch(contact_energy_kernel, self.self_threads,
-                   [self.self_record, x, x_try, self.model.inv_mass, *self._args(dt)[:-1],
-                    self.self_threads, out, slot], device=self.device)
+        self.energy_line(x, self._no_vec, self._no_free, wp.vec4(0.0), out, dt, slot)
 
     def energy_line(self, x, dx, free, steps, out, dt: float, slot: int = 0) -> None:
         """`energy` at ``x`` added to ``out[slot]`` and at ``x + a_j free dx`` (``a_j`` the
