@@ -73,14 +73,14 @@ SCENE_NEWTON_ITERATIONS = 10
 SCENE_PBD_MOVING_PINS_COMPLIANCE = "springs"
 
 
-def _solver_defaults(solver: str, solver_options: dict | None, moving_pins: bool = False) -> dict:
+def _solver_defaults(solver: str, solver_options: dict | None, model) -> dict:
     """``solver_options`` with the scenes' implicit Newton cap (`SCENE_NEWTON_ITERATIONS`)
-    and, where pins follow a path (``moving_pins``), PBD's compliance
+    and, where ``model``'s pins follow a path, PBD's compliance
     (`SCENE_PBD_MOVING_PINS_COMPLIANCE`), where not given."""
     options = dict(solver_options or {})
     if solver == "implicit":
         options.setdefault("newton_iterations", SCENE_NEWTON_ITERATIONS)
-    if solver == "pbd" and moving_pins:
+    if solver == "pbd" and model.pin_path is not None and len(model.pins):
         options.setdefault("compliance", SCENE_PBD_MOVING_PINS_COMPLIANCE)
     return options
 
@@ -126,7 +126,7 @@ def _contact_scene(model, obstacles, *, solver, solver_options, fps, frames, sub
     stage = CollisionStage(model, [*obstacles, *extra_obstacles], thickness=thickness,
                            friction=friction, restitution=restitution, ccd=ccd,
                            self_collision=self_collision)
-    scene = _finish(model, solver, _solver_defaults(solver, solver_options),
+    scene = _finish(model, solver, _solver_defaults(solver, solver_options, model),
                     corrections, fps, frames, substeps, (),
                     strain_bound, name, collision=stage)
     scene.contact = stage.contact
@@ -320,7 +320,7 @@ def fold(*, solver: str = "pd", solver_options: dict | None = None, fps: float =
     model.initial_positions = x
     stage = CollisionStage(model, [Plane(), *obstacles], thickness=thickness, friction=friction,
                            restitution=restitution, self_collision=self_collision)
-    scene = _finish(model, solver, _solver_defaults(solver, solver_options),
+    scene = _finish(model, solver, _solver_defaults(solver, solver_options, model),
                     corrections, fps, frames, substeps, (),
                     strain_bound, "fold", collision=stage)
     scene.contact, scene.collision = stage.contact, stage
@@ -367,7 +367,7 @@ def twist(*, solver: str = "pd", solver_options: dict | None = None, fps: float 
     stage = CollisionStage(model, list(obstacles), thickness=thickness,
                            self_collision=self_collision, self_solve_margin=thickness) \
         if (obstacles or self_collision) else None
-    scene = _finish(model, solver, _solver_defaults(solver, solver_options, moving_pins=True),
+    scene = _finish(model, solver, _solver_defaults(solver, solver_options, model),
                     corrections, fps, frames, substeps, (),
                     strain_bound, "twist", collision=stage)
     scene.collision = stage
@@ -407,7 +407,7 @@ def stack(*, solver: str = "pd", solver_options: dict | None = None, fps: float 
     obs = [Sphere(radius, (0.0, radius, 0.0)), Plane(), *obstacles]
     stage = CollisionStage(model, obs, thickness=thickness, friction=friction,
                            self_collision=self_collision)
-    scene = _finish(model, solver, _solver_defaults(solver, solver_options),
+    scene = _finish(model, solver, _solver_defaults(solver, solver_options, model),
                     corrections, fps, frames, substeps, (),
                     strain_bound, "stack", collision=stage)
     scene.contact, scene.collision = stage.contact, stage
