@@ -26,3 +26,26 @@ def rng():
 @pytest.fixture
 def tmp_usd(tmp_path):
     return os.fspath(tmp_path / "out.usd")
+
+
+def _run_metered(scene, **run_kw):
+    """Run ``scene`` and return the per-frame total energy and max edge strain (numpy arrays,
+    `warp_cloth.diagnostics.Meter`)."""
+    from warp_cloth.diagnostics import Meter
+
+    meter = Meter(scene.model)
+    energy, strain = [], []
+
+    def on_frame(f, st):
+        m = meter(st, energy=True)
+        energy.append(m.energy)
+        strain.append(m.max_strain)
+
+    scene.run(None, quiet=True, on_frame=on_frame, **run_kw)
+    return np.asarray(energy), np.asarray(strain)
+
+
+@pytest.fixture
+def run_metered():
+    """`_run_metered`: a scene's per-frame energy and max strain."""
+    return _run_metered

@@ -780,7 +780,7 @@ def test_pd_energy_check_runs_while_the_moving_obstacle_rests():
     assert np.diff(E).max() < 1e-3, f"{np.diff(E).max():.2e} J in a frame"
 
 
-def test_pd_friction_stays_put_with_more_iterations():
+def test_pd_friction_stays_put_with_more_iterations(run_metered):
     """Projective dynamics converges towards implicit Euler as its iterations grow, so more of
     them must not hurt. With friction's exact smoothed-Coulomb Hessian in PD's global matrix (very
     stiff while sticking, nothing along the slip while sliding) the undamped iterations
@@ -788,19 +788,10 @@ def test_pd_friction_stays_put_with_more_iterations():
     stretched 37 %. Friction is now a projective constraint of constant weight
     (`contact_coupling.entry_response`): measured 3e-5 J at most, 2.6 % strain."""
     from warp_cloth.contact_scenes import drape
-    from warp_cloth.diagnostics import Meter
 
     scene = drape(solver="pd", frames=70, solver_options=dict(iterations=30,
                                                               contact_iterations=0))
-    meter = Meter(scene.model)
-    E, strain = [], []
-
-    def on_frame(f, st):
-        m = meter(st, energy=True)
-        E.append(m.energy)
-        strain.append(m.max_strain)
-
-    scene.run(None, quiet=True, on_frame=on_frame)
+    E, strain = run_metered(scene)
     assert np.diff(E).max() < 1e-3 and max(strain) < 0.05, (np.diff(E).max(), max(strain))
 
 

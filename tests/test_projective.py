@@ -434,23 +434,14 @@ def test_pd_contact_iterations_run_on_impact_and_are_counted(capsys):
         table(solver="pd", res=4, frames=2, solver_options=dict(contact_iterations=-1))
 
 
-def test_pd_table_edge_slide_is_not_put_back():
+def test_pd_table_edge_slide_is_not_put_back(run_metered):
     """PD at 20 iterations on the default table: at frame 32 the vertex contact's second pass
     (after the box edges' friction had nearly stopped a vertex sliding onto the table's edge)
     put the vertex back by its whole 2.35 mm slide, stretching its edges 7 %: +2.2e-2 J in a
     frame. That pass's friction now changes velocities only (`response.outcome_in_frame`)."""
     from warp_cloth.contact_scenes import table
-    from warp_cloth.diagnostics import Meter
 
     scene = table(solver="pd", frames=36, solver_options={"iterations": 20})
-    meter = Meter(scene.model)
-    E, S = [], []
-
-    def on_frame(f, st):
-        m = meter(st, energy=True)
-        E.append(m.energy)
-        S.append(m.max_strain)
-
-    scene.run(None, quiet=True, on_frame=on_frame)
+    E, S = run_metered(scene)
     assert np.diff(E).max() < 1e-3, np.diff(E).max()
     assert max(S) < 0.05, max(S)
