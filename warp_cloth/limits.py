@@ -543,7 +543,10 @@ class _JacobiLimit:
             self._sweep(state, dt, True)
             if self._contact is not None:
                 stage, x_start = self._contact
-                stage.project_positions(state.x, x_start, dt, state.time)
+                # with the self-contacts a position-based solver's iterations projected this
+                # step (`CollisionStage.iter_live`)
+                stage.project_positions(state.x, x_start, dt, state.time,
+                                        self_contacts=getattr(stage, "iter_live", False))
         self._check(state.x)
         launch(limit_loop_kernel, 1, [self._counts, self._excess, self.iterations, 0, k],
                device=self.device)

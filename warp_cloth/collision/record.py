@@ -85,6 +85,13 @@ def make_record(capacity: int, device) -> ContactRecord:
     return r
 
 
+@wp.kernel
+def add_overflow_kernel(rec: ContactRecord, total: wp.array(dtype=int)):
+    """``total[0] +=`` the entries the record's last detection dropped (a running count over
+    the detections that reset the record's own)."""
+    total[0] = total[0] + rec.overflow[0]
+
+
 @wp.func
 def record_append(rec: ContactRecord, kind: int, vertex: wp.vec4i, weight: wp.vec4, n: wp.vec3,
                   offset: float, ref: wp.vec3, mu_t: float, mu_n: float, source: int):

@@ -119,7 +119,8 @@ import numpy as np
 import warp as wp
 
 from ..collision.features import pin_held
-from ..collision.record import KIND_VERTEX_OBSTACLE, ContactRecord, entry_gap
+from ..collision.record import (KIND_VERTEX_OBSTACLE, ContactRecord, add_overflow_kernel,
+                                entry_gap)
 from ..util import launch, positive_finite
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
@@ -419,11 +420,6 @@ def newton_contact_kernel(
                     wp.atomic_add(vblock, v, h)
                     wp.atomic_add(nblock, v, (w[j] * w[j]) * Hn)
             wp.atomic_add(active, 0, 1)
-
-
-@wp.kernel
-def add_overflow_kernel(rec: ContactRecord, total: wp.array(dtype=int)):
-    total[0] = total[0] + rec.overflow[0]
 
 
 @wp.kernel
