@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+import warp as wp
 
 from warp_cloth import cli
 from warp_cloth.collision import CollisionStage
@@ -468,6 +469,57 @@ def test_impact_zone_with_pins_follows_their_rigid_motion():
     x = st.x.numpy()
     np.testing.assert_allclose(x[:3], x1[:3], atol=1e-6)
     np.testing.assert_allclose(x[3], x0[3] @ R.T + [0.01, 0, 0], atol=5e-4)
+
+
+@wp.kernel
+def _floor_kernel(x: wp.array(dtype=wp.vec3)):
+    """A floor at y = 0 for `hold_grounded`: every point below it lifted onto it."""
+    i = wp.tid()
+    if x[i][1] < 0.0:
+        x[i] = wp.vec3(x[i][0], 0.0, x[i][2])
+
+
+@pytest.mark.parametrize("still", [1, 0])
+def test_impact_zone_that_a_still_obstacle_would_push_goes_back_to_its_start(still):
+    """Two zones, (0, 1, 2) and (4, 5); the obstacles' projection (here: a floor at y = 0 that
+    lifts every point below it) would move vertex 1 after the rigid move, so its whole zone
+    returns to the path's start with zero velocity and is counted; the other zone and vertex 3
+    (in none) keep their ends. With an obstacle moving this step (``still`` 0) nothing is held."""
+    x0 = np.array([[0.0, 0.1, 0], [0.1, 0.02, 0], [0.2, 0.1, 0], [0.3, 0.2, 0], [0.5, 0.3, 0],
+                   [0.6, 0.3, 0]])
+    x1 = x0 + [0.0, -0.05, 0.01]  # vertex 1 ends below the floor
+    z, rec, xs, st, counters = _zones_setup(6, [(0, 1), (1, 2), (4, 5)], x0, x1, np.ones(6))
+    z.move(rec, xs, st, 0.01, counters, 0)
+    moved = st.x.numpy().copy()
+
+    held = wp.zeros(1, dtype=int, device="cpu")
+    z.hold_grounded(xs, st, lambda x: wp.launch(_floor_kernel, len(x), [x], device="cpu"),
+                    wp.array([still], dtype=int, device="cpu"), held, 0)
+    x, v = st.x.numpy(), st.v.numpy()
+    if still:
+        np.testing.assert_allclose(x[:3], x0[:3], atol=1e-7)
+        assert np.all(v[:3] == 0.0) and held.numpy()[0] == 1
+    else:
+        np.testing.assert_allclose(x[:3], moved[:3])
+        assert held.numpy()[0] == 0
+    np.testing.assert_allclose(x[3:], moved[3:])  # the other zone, and no zone, untouched
+    assert not z.grounded.numpy().any()  # the flags are clear for the next pass
+
+
+def test_pbd_fold_in_long_steps_keeps_its_zones_off_the_floor():
+    """PBD's 12 x 12 fold at one step a frame, 20 fps: the response falls back on impact zones
+    (about a hundred), whose rigid motion had left a vertex 0.5 mm inside the floor's thickness;
+    a zone that the floor would push now goes back to its start (counted), so every vertex
+    stays at the thickness, and nothing crosses."""
+    scene = fold(solver="pbd", res=12, frames=40, fps=20, substeps=1)
+    th = scene.collision.thickness
+    least = [np.inf]
+    st = scene.run(None, quiet=True, energy=False, check_intersections=True,
+                   on_frame=lambda f, s: least.__setitem__(
+                       0, min(least[0], float(s.x.numpy()[:, 1].min()))))
+    s = scene.collision.stats
+    assert st.crossing_frames == 0 and s["self_zones_held_total"] > 0
+    assert least[0] >= th - 1e-4
 
 
 def _weak_stack(**stack_args):

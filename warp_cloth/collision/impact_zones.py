@@ -16,6 +16,13 @@ of their displacements, weight 1 each), which is exact when they move rigidly (a
 turned) and otherwise their best rigid approximation; the pinned vertices themselves keep their
 prescribed positions.
 
+A zone whose rigid end would put a member inside an obstacle's thickness (the collision stage's
+vertex contact would move it) goes back to the path's start with zero velocity instead
+(`ImpactZones.hold_grounded`), while every obstacle stands still: held by the obstacle as a
+pinned zone is by its pins. Vertex contact does not run after the zones (it could push a layer
+through another), so without this a zone turning about its centre left a vertex up to 0.5 mm
+inside the floor's thickness (PBD's fold at one step a frame).
+
 Zones are **grown**: after each rigid pass the paths are detected again, and the new contacts
 merge into the existing zones (labels persist through the step), up to ``passes`` times. If a
 path still comes too close after that, the caller returns the whole cloth to its start.
@@ -200,6 +207,45 @@ def zone_move_kernel(rec: ContactRecord, member: wp.array(dtype=int), label: wp.
     v[i] = (xn - x0[i]) * (inv_dt / float(steps[0]))
 
 
+@wp.kernel
+def zone_grounded_kernel(member: wp.array(dtype=int), label: wp.array(dtype=int),
+                         x: wp.array(dtype=wp.vec3), probe: wp.array(dtype=wp.vec3),
+                         grounded: wp.array(dtype=int)):
+    """A zone whose rigid end puts a member where obstacle contact moves it (``probe``: the
+    end positions after the obstacles' projection) is grounded."""
+    i = wp.tid()
+    if member[i] == 0:
+        return
+    if wp.length_sq(probe[i] - x[i]) > 0.0:
+        grounded[label[i]] = 1
+
+
+@wp.kernel
+def zone_hold_kernel(member: wp.array(dtype=int), label: wp.array(dtype=int),
+                     x0: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3),
+                     v: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float),
+                     grounded: wp.array(dtype=int), still: wp.array(dtype=int),
+                     counters: wp.array(dtype=int), slot: int):
+    """The free members of a grounded zone back at the path's start with zero velocity (held
+    by the obstacle like a pinned zone by its pins), while every obstacle stands still; the
+    grounded zones (roots) counted in ``counters[slot]``."""
+    i = wp.tid()
+    if member[i] == 0 or still[0] == 0:
+        return
+    r = label[i]
+    if grounded[r] != 0:
+        if inv_mass[i] > 0.0:
+            x[i] = x0[i]
+            v[i] = wp.vec3(0.0)
+        if r == i:
+            wp.atomic_add(counters, slot, 1)
+
+
+@wp.kernel
+def zone_ground_clear_kernel(grounded: wp.array(dtype=int)):
+    grounded[wp.tid()] = 0
+
+
 class ImpactZones:
     """Zone labels and per-zone sums for a model's vertices (module docstring)."""
 
@@ -220,6 +266,9 @@ class ImpactZones:
 
         self._iota = wp.array(np.arange(n, dtype=np.int32), dtype=int, device=d)
         self._one = wp.ones(1, dtype=int, device=d)
+        self.grounded = wp.zeros(n, dtype=int, device=d)
+        # `hold_grounded`'s end positions after the obstacles' projection
+        self._probe = wp.zeros(n, dtype=wp.vec3, device=d)
 
     def reset(self) -> None:
         """No zones (start of a step)."""
@@ -260,3 +309,21 @@ class ImpactZones:
                                      self.zinert, self.zpinned, 1.0 / dt, steps, counters,
                                      slot],
                device=d)
+
+    def hold_grounded(self, x0, state, project, still, counters, slot: int) -> None:
+        """After `move`: the zones whose rigid end would put a member inside an obstacle's
+        thickness (``project(positions)`` moves such positions out: the collision stage's vertex
+        contact) go back to the path's start ``x0`` with zero velocity, where the cloth was
+        clear of the obstacles and of itself, while every obstacle stands still (``still[0]``,
+        a device flag that ``project`` sets: a moving obstacle could meet the held zone there).
+        The rigid motion keeps the zone's own distances but not its distance to an obstacle,
+        and vertex contact after it could push a layer through another: the next zone pass's
+        detection sees the held zones. ``counters[slot]`` += zones held."""
+        m, d, n = self.model, self.device, len(self.label)
+        wp.copy(self._probe, state.x)
+        project(self._probe)
+        launch(zone_grounded_kernel, n, [self.member, self.label, state.x, self._probe,
+                                         self.grounded], device=d)
+        launch(zone_hold_kernel, n, [self.member, self.label, x0, state.x, state.v, m.inv_mass,
+                                     self.grounded, still, counters, slot], device=d)
+        launch(zone_ground_clear_kernel, n, [self.grounded], device=d)

@@ -31,7 +31,8 @@ Per step, on the cloth's path from ``x_start`` to ``x`` (``physics.md`` 2.18-2.2
    the step ended with two edges through it and every constraint kept), the vertices of
    those contacts are merged into zones (contacts sharing a vertex),
    each zone moves rigidly over the step with its linear and angular momentum (distances inside
-   it as at the start of the step, which was free of crossings), the paths are detected again and
+   it as at the start of the step, which was free of crossings; a zone that a still obstacle
+   would push stays at its start, ``self_zones_held``), the paths are detected again and
    new contacts grow the zones, ``zone_passes`` times. If one still comes that close, the whole
    cloth returns to its start with zero velocity. All counted in ``stats`` (``self_zones``,
    ``self_zone_vertices``, ``self_fallback_all``, per step and summed over the run), never
@@ -83,7 +84,7 @@ __all__ = ["SelfCollision"]
 CCD_ITERATIONS = 64
 #: the counters of `SelfCollision.stats`, per step (and ``*_total``: summed over all steps)
 STAT_KEYS = ("self_contacts", "self_overflow", "self_zones", "self_zone_vertices",
-             "self_fallback_all", "self_responses", "self_pinned")
+             "self_fallback_all", "self_responses", "self_pinned", "self_zones_held")
 # the counters the kernels write, by name (the order of STAT_KEYS is free)
 I_CONTACTS = wp.constant(STAT_KEYS.index("self_contacts"))
 I_OVERFLOW = wp.constant(STAT_KEYS.index("self_overflow"))
@@ -91,6 +92,7 @@ I_RESPONSES = wp.constant(STAT_KEYS.index("self_responses"))
 I_PINNED = wp.constant(STAT_KEYS.index("self_pinned"))
 I_ZONES = STAT_KEYS.index("self_zones")  # the impact zones write this slot and the next
 I_FALLBACK = STAT_KEYS.index("self_fallback_all")
+I_HELD = STAT_KEYS.index("self_zones_held")
 if STAT_KEYS[I_ZONES + 1] != "self_zone_vertices":  # pragma: no cover - a layout invariant
     raise RuntimeError("STAT_KEYS: self_zone_vertices must follow self_zones")
 #: `SelfCollision.frame_end` warns (``frame_frozen``) when the rigid impact zones held this share
@@ -1197,7 +1199,10 @@ class SelfCollision:
         (`plan`), with the last response's contacts held in between (`hold`). ``obstacles``:
         a callable that keeps the vertices out of the obstacles (the collision stage's vertex
         contact on this step's path), run inside every round after its projection, so that the
-        next round's detection sees what it moved (`_round`)."""
+        next round's detection sees what it moved (`_round`); called with an array it projects
+        that array instead, and its ``still`` attribute (a device flag: every obstacle stands
+        still this step) lets the impact zones hold a zone it would push (`ImpactZones.
+        hold_grounded`)."""
         self._obstacles = obstacles
         if self.frame_steps is None:
             self.resolve(state, x_start, dt)
@@ -1333,6 +1338,10 @@ class SelfCollision:
     def _zone_move(self, state, x_start, dt, steps):
         self.zones.merge(self.record, self.threads)
         self.zones.move(self.record, x_start, state, dt, self.counters, I_ZONES, steps)
+        still = getattr(self._obstacles, "still", None)
+        if still is not None:
+            self.zones.hold_grounded(x_start, state, self._obstacles, still, self.counters,
+                                     I_HELD)
 
     def frame_end(self) -> list:
         """Since the last call: steps that returned the whole cloth to its start, frames whose

@@ -333,8 +333,12 @@ class CollisionStage:
             # by it
             obstacles = None
             if self.contact is not None:
-                def obstacles():  # positions only: friction and restitution acted already
-                    self.contact.project_positions(state.x, x_start, dt, state.time)
+                def obstacles(x=None):  # positions only: friction and restitution acted already
+                    self.contact.project_positions(state.x if x is None else x, x_start, dt,
+                                                   state.time)
+                # every obstacle stands still this step (the projection sets it): the impact
+                # zones may hold a zone that touches one where it started
+                obstacles.still = self.contact.still
             self.self_collision.step(state, x_start, dt, obstacles=obstacles)
 
     # position-based iterations
