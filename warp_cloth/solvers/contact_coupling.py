@@ -817,6 +817,10 @@ class ContactCoupling:
         self.v_cnt = wp.zeros(model.num_vertices, dtype=float, device=self.device)
         self.f_other = wp.zeros(model.num_vertices, dtype=wp.vec3, device=self.device)
         self.active = wp.zeros(1, dtype=int, device=self.device)
+        #: the self-contacts active at the last assembly (`add_newton`; ``active`` counts the
+        #: record's): the inner solve's translation correction runs only then
+        #: (`linear.CGSolver.translation`)
+        self.self_active = wp.zeros(1, dtype=int, device=self.device)
         # with mesh features, the record holds entries of two cloth vertices (a cloth edge on an
         # obstacle's feature): their activity, for the off-diagonal part of their Hessian
         self._dt = 1.0  # the step's dt, set by `add_newton` (read by `matvec_add`)
@@ -908,6 +912,7 @@ class ContactCoupling:
         self.vblock.zero_()
         self.nblock.zero_()
         self.active.zero_()
+        self.self_active.zero_()
         launch(newton_contact_kernel, self.threads,
                [self.record, x, self.model.inv_mass, *self._args(dt), b, diag, self.vblock,
                 self.nblock, self.active,
@@ -917,7 +922,7 @@ class ContactCoupling:
         if self.self_record is not None:
             launch(newton_contact_kernel, self.self_threads,
                    [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
-                    self.self_threads, b, diag, self.vblock, self.nblock, self.active,
+                    self.self_threads, b, diag, self.vblock, self.nblock, self.self_active,
                     self.self_on], device=self.device)
 
     def mark_free(self, free) -> None:
