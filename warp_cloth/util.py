@@ -164,3 +164,10 @@ def launch(kernel, dim, inputs, device=None) -> None:
             seen[i] = v
     cmd.launch()
     return None
+
+
+def count_since(counter, seen: int, slot: int = 0) -> tuple[int, int]:
+    """A device counter's growth since the last report (one host read, for a frame's messages):
+    ``(new, total)`` with ``new = counter[slot] - seen``; keep ``total`` as the next ``seen``."""
+    total = int(counter.numpy()[slot])
+    return total - int(seen), total

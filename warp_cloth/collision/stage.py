@@ -44,7 +44,7 @@ from .contact import DEFAULT_THICKNESS, ObstacleContact
 from .features import RESOLVE_TOL, jacobi_project_kernel, position_apply_kernel
 from .obstacles import Obstacle
 from .record import add_overflow_kernel, make_record, record_threads
-from ..util import launch, nonnegative_finite, positive_finite
+from ..util import count_since, launch, nonnegative_finite, positive_finite
 
 #: `CollisionStage.contact_substeps`: a moving obstacle travels at most this many of the cloth's
 #: shortest edge lengths in one step
@@ -466,8 +466,7 @@ class CollisionStage:
         must be recorded again). The dropped pairs were still resolved after the step."""
         if self.iter_record is None:
             return []
-        n = int(self._iter_dropped.numpy()[0])
-        new, self._iter_dropped_seen = n - self._iter_dropped_seen, n
+        new, self._iter_dropped_seen = count_since(self._iter_dropped, self._iter_dropped_seen)
         if new <= 0:
             return []
         cap = 2 * int(self.iter_record.vertex.shape[0])

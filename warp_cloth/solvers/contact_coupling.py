@@ -121,7 +121,7 @@ import warp as wp
 from ..collision.features import pin_held
 from ..collision.record import (KIND_VERTEX_OBSTACLE, ContactRecord, add_overflow_kernel,
                                 entry_gap)
-from ..util import launch, positive_finite
+from ..util import count_since, launch, positive_finite
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
@@ -968,8 +968,7 @@ class ContactCoupling:
         still resolved after the solve. ``(message, regrown)`` pairs."""
         if self.self_record is None:
             return []
-        n = int(self.self_dropped.numpy()[0])
-        new, self._dropped_seen = n - self._dropped_seen, n
+        new, self._dropped_seen = count_since(self.self_dropped, self._dropped_seen)
         if new <= 0:
             return []
         cap = 2 * self.self_record.vertex.shape[0]

@@ -66,7 +66,7 @@ import math
 import numpy as np
 import warp as wp
 
-from ..util import launch, positive_finite
+from ..util import count_since, launch, positive_finite
 from .base import Solver
 from .common import spring_energy64_kernel, to_float64_kernel
 from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
@@ -979,8 +979,7 @@ class ProjectiveDynamics(Solver):
             if new > 0:
                 out.append(f"pd: {new} step(s) used all {self.contact_iterations} contact "
                            f"iterations with the residual still above {self.contact_residual:g} m")
-            g = int(self._more.numpy()[3])
-            new, self._gain_seen = g - self._gain_seen, g
+            new, self._gain_seen = count_since(self._more, self._gain_seen, 3)
             if new > 0:
                 out.append(f"pd: {new} step(s) used all {self.contact_iterations} contact "
                            f"iterations still gaining energy")
@@ -989,8 +988,7 @@ class ProjectiveDynamics(Solver):
     def _tolerance_messages(self) -> list:
         if self.tolerance is None:
             return []
-        n = int(self._short.numpy()[0])
-        new, self._short_seen = n - self._short_seen, n
+        new, self._short_seen = count_since(self._short, self._short_seen)
         if new <= 0:
             return []
         r = float(self._res.numpy()[2])
