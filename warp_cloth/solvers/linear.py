@@ -228,6 +228,7 @@ class _Base:
         self.s2 = wp.zeros(m, dtype=wp.float64, device=d)
         self.s3 = wp.zeros(m, dtype=wp.float64, device=d)
         self.bnorm = wp.zeros(1, dtype=wp.float64, device=d)
+        self.tsums = wp.zeros(12, dtype=wp.float64, device=d)  # `_translation_correction`
 
     def _translation_correction(self, A, x, r) -> None:
         """The residual's net force taken out by a translation of every free vertex: ``x +=
@@ -239,21 +240,16 @@ class _Base:
         sheet on the floor slide off sideways, faster every frame (implicit Euler, 20 x 20
         fold: 0.95 m/s after 45 frames and 0.07 J gained; `CGSolver` ``translation``). After
         it the step changes the cloth's momentum only as its linearised forces do."""
-        if getattr(self, "_tsums", None) is None or self._tsums.device != A.device:
-            self._tsums = wp.zeros(12, dtype=wp.float64, device=A.device)
-            self._tvec = wp.zeros(A.n, dtype=wp.vec3, device=A.device)
-            self._tax = wp.zeros(A.n, dtype=wp.vec3, device=A.device)
-        if self._tvec.shape[0] != A.n:
-            self._tvec = wp.zeros(A.n, dtype=wp.vec3, device=A.device)
-            self._tax = wp.zeros(A.n, dtype=wp.vec3, device=A.device)
+        # after the iterations ``z`` and ``ax`` are free to hold the translations and their
+        # products (allocated with the solver's arrays: nothing allocated inside a step)
         d, n = A.device, A.n
-        self._tsums.zero_()
+        self.tsums.zero_()
         for k in range(3):
-            launch(_unit_fill_kernel, n, [A.free, k, self._tvec], device=d)
-            A.matvec(self._tvec, self._tax)
-            launch(_sum_rows_kernel, n, [self._tax, A.free, self._tsums, 3 * k], device=d)
-        launch(_sum_rows_kernel, n, [r, A.free, self._tsums, 9], device=d)
-        launch(_translate_kernel, n, [x, A.free, self._tsums], device=d)
+            launch(_unit_fill_kernel, n, [A.free, k, self.z], device=d)
+            A.matvec(self.z, self.ax)
+            launch(_sum_rows_kernel, n, [self.ax, A.free, self.tsums, 3 * k], device=d)
+        launch(_sum_rows_kernel, n, [r, A.free, self.tsums, 9], device=d)
+        launch(_translate_kernel, n, [x, A.free, self.tsums], device=d)
 
     def _bnorm2(self, A, b):
         self.bnorm.zero_()
