@@ -348,6 +348,80 @@ def test_self_contact_term_full_hessian_matches_finite_differences():
     assert np.abs(H[0:3, 3 * 9:3 * 10]).max() > 0.1 * np.abs(J).max()  # coupled across
 
 
+def test_pd_local_step_puts_the_active_self_contacts_whole_hessian_in_the_operator():
+    """Projective dynamics' local step marks the active self-contacts; the global step's
+    operator (`vblock` plus `matvec_add`, which runs over the listed active entries only) is
+    then ``sum k (w w^T) (x) n n^T`` over exactly those entries (``k = kappa / (dt^2 sum_j w_j^2
+    / m_j)``, pinned vertex 15 eliminated), written out here; and again after a second local
+    step at positions where another entry is the active one (the list follows each step)."""
+    from types import SimpleNamespace
+
+    model = sheet_model(res=3, size=0.3, pins=[15])  # 16 vertices
+    n = model.num_vertices
+    im = model.inv_mass.numpy().astype(np.float64)
+    rng = np.random.default_rng(5)
+    x = rng.normal(scale=0.05, size=(n, 3))
+    nrm = np.array([0.2, 1.0, 0.4]) / np.linalg.norm([0.2, 1.0, 0.4])
+    n2 = np.array([1.0, 0.1, -0.3]) / np.linalg.norm([1.0, 0.1, -0.3])
+    ents = [(KIND_VERTEX_TRIANGLE, [0, 5, 6, 9], [1.0, -0.2, -0.5, -0.3], nrm),
+            (KIND_EDGE_EDGE, [1, 2, 9, 15], [0.6, 0.4, -0.7, -0.3], n2),
+            (KIND_EDGE_EDGE, [3, 7, 10, 11], [0.6, 0.4, -0.7, -0.3], nrm)]
+
+    def gap(xx, k):
+        _, vs, w, nn = ents[k]
+        return float(nn @ sum(wj * xx[v] for v, wj in zip(vs, w)))
+
+    depth = [2e-3, 1e-3, -1e-3]  # the third 1 mm apart: inactive at x
+    rec = _record([(kd, vs, w, nn, gap(x, k) + depth[k], np.zeros(3), 0.0)
+                   for k, (kd, vs, w, nn) in enumerate(ents)])
+    fake = SimpleNamespace(record=_record([(KIND_VERTEX_OBSTACLE, [0, -1, -1, -1], [1, 0, 0, 0],
+                                            nrm, -1.0, np.zeros(3), 0.0)]),
+                           capacity=1, obstacles=[None], self_in_solve=True,
+                           self_collision=SimpleNamespace(capacity=len(ents)))
+    cc = ContactCoupling(model, fake, stiffness=1e3)
+    cc.self_record = rec
+    dt = 1.0 / 100.0
+
+    def operator_at(xx):
+        xw = wp.array(xx.astype(np.float32), dtype=wp.vec3, device="cpu")
+        cc.pd_local(xw, wp.zeros(n, dtype=wp.vec3, device="cpu"),
+                    wp.zeros(1, dtype=wp.float64, device="cpu"), 0, dt)
+        vb = cc.vblock.numpy().astype(np.float64)
+        H = np.zeros((3 * n, 3 * n))
+        for i in range(n):
+            for c in range(3):
+                e = np.zeros((n, 3), dtype=np.float32)
+                e[i, c] = 1.0
+                out = wp.zeros(n, dtype=wp.vec3, device="cpu")
+                cc.matvec_add(wp.array(e, dtype=wp.vec3, device="cpu"), out)
+                col = out.numpy().astype(np.float64).reshape(-1)
+                col[3 * i:3 * i + 3] += vb[i][:, c]
+                H[:, 3 * i + c] = col
+        return H
+
+    def expected(active):
+        H = np.zeros((3 * n, 3 * n))
+        for k in active:
+            _, vs, w, nn = ents[k]
+            kk = 1e3 / (dt * dt) / sum(wj * wj * im[v] for v, wj in zip(vs, w))
+            for a, wa in zip(vs, w):
+                for b, wb in zip(vs, w):
+                    if im[a] > 0 and im[b] > 0:
+                        H[3 * a:3 * a + 3, 3 * b:3 * b + 3] += kk * wa * wb * np.outer(nn, nn)
+        return H
+
+    H = operator_at(x)
+    assert cc.self_on.numpy().tolist() == [1, 1, 0]
+    np.testing.assert_allclose(H, expected([0, 1]), rtol=1e-4, atol=1e-6 * np.abs(H).max())
+    # move the first entry's vertex 0 out along its normal and the third's vertex 3 in
+    x2 = x.copy()
+    x2[0] += 5e-3 * nrm
+    x2[3] -= 5e-3 * nrm / 0.6
+    H2 = operator_at(x2)
+    assert cc.self_on.numpy().tolist() == [0, 1, 1]
+    np.testing.assert_allclose(H2, expected([1, 2]), rtol=1e-4, atol=1e-6 * np.abs(H2).max())
+
+
 # ------------------------------------------------------------------ inside the solve
 @pytest.mark.parametrize("solver_name", ["implicit", "pd"])
 def test_solve_itself_respects_contact(solver_name):
