@@ -235,11 +235,9 @@ def _newton_force(cc, n, dt):
     return force
 
 
-def _hessian_and_jacobian(cc, force, x):
-    """The assembled contact Hessian at ``x`` (`vblock` plus the operator term `matvec_add`,
-    column by column) and the central-difference Jacobian of ``-force``."""
-    n = len(x)
-    force(x)
+def _assembled_operator(cc, n):
+    """The contact term's matrix as the solver sees it after an assembly: `vblock` plus the
+    operator term `matvec_add`, column by column (float64 host array, 3n x 3n)."""
     vb = cc.vblock.numpy().astype(np.float64)
     H = np.zeros((3 * n, 3 * n))
     for i in range(n):
@@ -251,6 +249,15 @@ def _hessian_and_jacobian(cc, force, x):
             col = out.numpy().astype(np.float64).reshape(-1)
             col[3 * i:3 * i + 3] += vb[i][:, c]
             H[:, 3 * i + c] = col
+    return H
+
+
+def _hessian_and_jacobian(cc, force, x):
+    """The assembled contact Hessian at ``x`` (`vblock` plus the operator term `matvec_add`,
+    column by column) and the central-difference Jacobian of ``-force``."""
+    n = len(x)
+    force(x)
+    H = _assembled_operator(cc, n)
     J = np.zeros_like(H)
     h = 1e-5
     for i in range(n):
@@ -386,18 +393,7 @@ def test_pd_local_step_puts_the_active_self_contacts_whole_hessian_in_the_operat
         xw = wp.array(xx.astype(np.float32), dtype=wp.vec3, device="cpu")
         cc.pd_local(xw, wp.zeros(n, dtype=wp.vec3, device="cpu"),
                     wp.zeros(1, dtype=wp.float64, device="cpu"), 0, dt)
-        vb = cc.vblock.numpy().astype(np.float64)
-        H = np.zeros((3 * n, 3 * n))
-        for i in range(n):
-            for c in range(3):
-                e = np.zeros((n, 3), dtype=np.float32)
-                e[i, c] = 1.0
-                out = wp.zeros(n, dtype=wp.vec3, device="cpu")
-                cc.matvec_add(wp.array(e, dtype=wp.vec3, device="cpu"), out)
-                col = out.numpy().astype(np.float64).reshape(-1)
-                col[3 * i:3 * i + 3] += vb[i][:, c]
-                H[:, 3 * i + c] = col
-        return H
+        return _assembled_operator(cc, n)
 
     def expected(active):
         H = np.zeros((3 * n, 3 * n))
