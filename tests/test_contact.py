@@ -210,6 +210,45 @@ def test_impulse_properties(rng, mu_n, mu_t):
         assert stick.any() and (~stick).any()
 
 
+@pytest.mark.parametrize("kind", ["plane", "box", "mesh"])
+def test_friction_moves_back_only_the_slide_made_in_contact(kind):
+    """Coulomb friction's position change covers the part of the step spent in contact
+    (`response.contact_share`): a vertex arriving from 20 mm above the thickness layer, 1 mm
+    into it at the step's end, at 2.4 m/s down and 2.4 m/s sideways (mu_T = 0.4: a = 0.6) is put
+    back (1 - a) share d_T, share = (thickness + 1 mm) / (20 mm + 1 mm) (the path comes within
+    a thickness of its end's level at 1 - share), not (1 - a) d_T (8 mm back: implicit Euler's
+    solve that pulled a vertex onto the floor stretched its edge to 21 % that way); one that
+    starts within a thickness of it (resting, sliding, lifted by another response) has share 1.
+    Plane (analytic fast path), a box (analytic general path) and a closed mesh (the box's
+    faces) agree."""
+    th, dt, mu = 0.005, 1.0 / 120.0, 0.4
+    if kind == "plane":
+        ob = Plane(friction=mu, restitution=0.0)
+    elif kind == "box":
+        ob = Box((0.5, 0.5, 0.5), center=(0.0, -0.5, 0.0), friction=mu, restitution=0.0)
+    else:
+        c = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-1.0, 0.0) for z in (-0.5, 0.5)])
+        quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+        tris = np.array([t for a, b, q, d in quads for t in ((a, b, q), (a, q, d))])
+        ob = MeshObstacle((c, tris), friction=mu, restitution=0.0)
+    starts = np.array([[0.0, th + 0.02, 0.0], [0.1, th, 0.1], [0.2, th + 0.003, 0.2]])
+    ends = np.array([[0.02, th - 0.001, 0.0], [0.101, th - 1e-4, 0.1], [0.21, th - 5e-4, 0.2]])
+    vel = np.array([[2.4, -2.4, 0.0], [0.12, -0.012, 0.0], [1.2, -0.42, 0.0]])
+    model, st = particles(ends, vel)
+    xs = st.positions()
+    xs[:3] = starts
+    contact = ObstacleContact(model, [ob], thickness=th, restitution=0.0, friction=mu)
+    contact.apply(st, wp.array(xs.astype(np.float32), dtype=wp.vec3), dt)
+    x, v = st.positions()[:3], st.velocities()[:3]
+    a = 1.0 - mu * (-vel[:, 1]) / vel[:, 0]  # sliding in all three: 0.6, 0.96, 0.86
+    share = (th + 0.001) / (0.020 + 0.001)
+    np.testing.assert_allclose(x[0], [0.02 - (1 - a[0]) * share * 0.02, th, 0.0], atol=2e-6)
+    np.testing.assert_allclose(x[1], [0.101 - (1 - a[1]) * 0.001, th, 0.1], atol=2e-6)
+    np.testing.assert_allclose(x[2], [0.21 - (1 - a[2]) * 0.01, th, 0.2], atol=2e-6)
+    np.testing.assert_allclose(v[:, 0], a * vel[:, 0], atol=1e-4)
+    np.testing.assert_allclose(v[:, 1:], 0.0, atol=1e-4)
+
+
 @pytest.mark.parametrize("solver_name", SOLVERS)
 @pytest.mark.parametrize("restitution", [0.0, 1.0])
 def test_restitution_single_particle(restitution, solver_name):

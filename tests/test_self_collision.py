@@ -235,7 +235,11 @@ def test_pbd_long_steps_keep_the_stack_apart_with_contacts_in_their_iterations()
     assert s["self_fallback_all_total"] == 0 and s["self_iteration_dropped"] == 0
     assert listed[0] > 0
     assert least[0] >= th - 1e-4
-    assert st.max_strain < 0.095  # the guard's 8 % and what the response left
+    # the guard's 8 % and what the self-collision response after it left (README, *Methods*:
+    # 9.9-11.7 % at one step a frame); 8.9 % before friction moved back only the share of a
+    # slide made in contact, 10.1 % since (the sheets slide further on the sphere); 18 %
+    # without the self-contacts in the iterations
+    assert st.max_strain < 0.11
 
 
 def test_pbd_self_contacts_option_is_checked_and_its_overflow_reported(capsys):

@@ -259,7 +259,7 @@ def analytic_near(
         if respond_velocity != 0 and not touched:
             vr = v[i]
         xo, vo = contact_outcome(p0, p_in, p1, n, poses[j], poses[j + 1], vr, dt,
-                                 ob.restitution, ob.friction, respond_velocity)
+                                 ob.restitution, ob.friction, respond_velocity, thickness)
         return xo, vo, True
     return x1, vi, touched
 
@@ -310,7 +310,7 @@ def static_near(
         if respond_velocity != 0 and not touched:
             vr = v[i]
         q, vo = outcome_in_frame(p0, p_in, p1, n, vr, wp.vec3(0.0), n, reaches[k].restitution,
-                                 reaches[k].friction, respond_velocity)
+                                 reaches[k].friction, respond_velocity, thickness)
         return q + reaches[k].origin, vo, True
     return x1, vi, touched
 

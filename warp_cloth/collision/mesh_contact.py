@@ -330,7 +330,7 @@ def static_cached_near(
         if respond_velocity != 0 and not touched:
             vr = v[i]
         xo, vo = outcome_in_frame(x0, x1, p, n, vr, wp.vec3(0.0), n, restitution, friction,
-                                  respond_velocity)
+                                  respond_velocity, thickness)
         return xo, vo, True
     return x1, vi, touched
 
@@ -444,7 +444,7 @@ def mesh_near(
             vi = v[i]
         touched = True
         x1, vi = contact_outcome(p0, p_in, p1, n, poses[j], poses[j + 1], vi, dt,
-                                 ob.restitution, ob.friction, respond_velocity)
+                                 ob.restitution, ob.friction, respond_velocity, thickness)
     return x1, vi, touched
 
 

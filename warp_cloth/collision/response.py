@@ -56,15 +56,36 @@ def position_friction(p0: wp.vec3, p_in: wp.vec3, p_out: wp.vec3, n: wp.vec3, mu
 
 
 @wp.func
+def contact_share(p0: wp.vec3, p_in: wp.vec3, p1: wp.vec3, n: wp.vec3, level: float):
+    """The share of the step's path ``p0 -> p_in`` spent in contact, along the normal ``n`` of
+    the end ``p1`` (``p_in`` projected): with ``h0`` and ``h_in`` the start's and the
+    unprojected end's heights above the end along ``n``, the path comes within ``level`` (the
+    thickness) of the end's level at ``tau = (h0 - level) / (h0 - h_in)``, and the share is
+    ``1 - tau``; 1 for a path that starts within ``level`` of it (resting, sliding, or lifted by
+    another response: self-collision's projection moves a layer by up to the thickness between
+    steps, which is no approach; with the slack (a tenth of it) as the level, explicit Euler's
+    stack of sheets gained 2.4e-2 J in a frame, 6e-5 before)."""
+    h0 = wp.dot(p0 - p1, n)
+    h_in = wp.dot(p_in - p1, n)
+    if h0 <= level or h0 <= h_in:
+        return 1.0
+    return wp.clamp((level - h_in) / (h0 - h_in), 0.0, 1.0)
+
+
+@wp.func
 def outcome_in_frame(p0: wp.vec3, p_in: wp.vec3, p1: wp.vec3, n: wp.vec3, v: wp.vec3,
-                     vs: wp.vec3, nv: wp.vec3, mu_n: float, mu_t: float, respond_velocity: int):
+                     vs: wp.vec3, nv: wp.vec3, mu_n: float, mu_t: float, respond_velocity: int,
+                     level: float):
     """The end of one vertex-obstacle contact in the obstacle's frame: (end position ``q`` in that
     frame, new velocity). ``v``, ``vs`` and ``nv`` (the normal ``n`` in the velocities' frame) are
     only used with ``respond_velocity``.
 
     With ``respond_velocity`` (``apply``): the notes' impulse (`impulse`) and the matching
-    tangential position change (the same factor ``a`` scales the tangential displacement since the
-    start of the step: a sticking vertex does not creep). With ``respond_velocity == 2`` (the pass
+    tangential position change (the same factor ``a`` scales the tangential displacement of the
+    part of the step spent in contact, `contact_share`: a sticking vertex does not creep, and a
+    vertex arriving from afar keeps the slide it made before it touched: one arriving from 2 cm
+    above the thickness at 2.4 m/s, with as much sideways speed, was put back 8 mm, now 2.3).
+    With ``respond_velocity == 2`` (the pass
     after the features' response, `CollisionStage._pairs`): the impulse only. The features'
     friction may have slowed the vertex since the first pass without moving it back (velocity
     only, all solvers but explicit Euler), so its velocity no longer tells how it moved in the
@@ -80,7 +101,7 @@ def outcome_in_frame(p0: wp.vec3, p_in: wp.vec3, p1: wp.vec3, n: wp.vec3, v: wp.
             return p1, vnew
         d = p1 - p0
         d_t = d - wp.dot(d, n) * n
-        return p1 - (1.0 - a) * d_t, vnew
+        return p1 - (1.0 - a) * contact_share(p0, p_in, p1, n, level) * d_t, vnew
     q = p1
     if mu_t > 0.0:
         q = position_friction(p0, p_in, p1, n, mu_t)
@@ -90,7 +111,7 @@ def outcome_in_frame(p0: wp.vec3, p_in: wp.vec3, p1: wp.vec3, n: wp.vec3, v: wp.
 @wp.func
 def contact_outcome(p0: wp.vec3, p_in: wp.vec3, p1: wp.vec3, n: wp.vec3, T0: wp.transform,
                     T1: wp.transform, v: wp.vec3, dt: float, mu_n: float, mu_t: float,
-                    respond_velocity: int):
+                    respond_velocity: int, level: float):
     """`outcome_in_frame` for an obstacle with poses ``T0`` / ``T1`` at the start / end of the
     step (positions in its frame, velocities in the world's); the surface velocity is that of
     the material point at the end position, ``(T1 p1 - T0 p1) / dt``. Returns (world end
@@ -100,5 +121,6 @@ def contact_outcome(p0: wp.vec3, p_in: wp.vec3, p1: wp.vec3, n: wp.vec3, T0: wp.
     if respond_velocity != 0:
         nw = wp.transform_vector(T1, n)
         vs = (wp.transform_point(T1, p1) - wp.transform_point(T0, p1)) / dt
-    q, vnew = outcome_in_frame(p0, p_in, p1, n, v, vs, nw, mu_n, mu_t, respond_velocity)
+    q, vnew = outcome_in_frame(p0, p_in, p1, n, v, vs, nw, mu_n, mu_t, respond_velocity,
+                               level)
     return wp.transform_point(T1, q), vnew
