@@ -149,6 +149,34 @@ def test_cg_fused_and_generic_paths_agree(system):
     assert np.abs(out[0][1] - xs).max() < 1e-3 * np.abs(xs).max()
 
 
+@pytest.mark.parametrize("name", ["jacobi", "cg"])
+def test_strided_sums_do_not_depend_on_the_thread_count(system, monkeypatch, name):
+    """The solvers' per-vertex kernels stride over the vertices and add each thread's float64
+    sums once (`util.stride_threads`: one thread on the CPU, one per vertex elsewhere). Run
+    with one thread per vertex, as on a GPU, they give the same iterates and residuals: every
+    vertex is visited once, whatever the thread count (a thread that skipped or repeated one
+    would change the solution or its residual)."""
+    import warp_cloth.solvers.linear as lin
+
+    m, A, b, xs, _ = system
+    bb = wp.array(b, dtype=wp.vec3)
+    out = []
+    for per_vertex in (False, True):
+        if per_vertex:
+            monkeypatch.setattr(lin, "stride_threads", lambda n, device: int(n))
+        op = SpringSystemOperator(m, mass_scale=3600.0)
+        op.fill_laplacian()
+        op.update()
+        assert op.threads == (m.num_vertices if per_vertex else 1)
+        x = wp.zeros(m.num_vertices, dtype=wp.vec3)
+        info = make_linear_solver(name, iterations=60, tolerance=1e-12, check_every=10).solve(
+            op, bb, x)
+        out.append((info["residual"], x.numpy()))
+    assert out[0][0] == pytest.approx(out[1][0], rel=1e-5)
+    assert np.allclose(out[0][1], out[1][1], atol=1e-6 * np.abs(xs).max())
+    assert out[0][0] < 0.5  # the iterations did reduce the residual
+
+
 def test_folded_constant_term_equals_its_own_product():
     """A constant-Hessian term (quadratic bending) is folded into the operator's scalar rows:
     the operator equals springs + mass + ``dense_q (x) I_3``, its diagonal holds the term's

@@ -171,3 +171,17 @@ def count_since(counter, seen: int, slot: int = 0) -> tuple[int, int]:
     ``(new, total)`` with ``new = counter[slot] - seen``; keep ``total`` as the next ``seen``."""
     total = int(counter.numpy()[slot])
     return total - int(seen), total
+
+
+def stride_threads(n: int, device) -> int:
+    """Threads for a per-vertex kernel that sums into a few float64 totals by striding over
+    its ``n`` elements (``for i in range(tid, n, threads)``): one on the CPU, whose backend
+    runs a launch's threads one after another on one core, so one thread's loop sums in
+    registers and adds each total once; ``n`` elsewhere (one element a thread, as a plain
+    launch). Summing every element into memory with ``wp.atomic_add`` cost CG's update about
+    twice its arithmetic on the CPU: each add waits for the last one to that address (measured
+    on 2,500 vertices: 38-48 us against 19-24 us a launch)."""
+    if wp.get_device(device).is_cpu:
+        return 1
+    return max(1, int(n))
+

@@ -40,7 +40,7 @@ import math
 import numpy as np
 import warp as wp
 
-from ..util import launch
+from ..util import launch, stride_threads
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
@@ -63,53 +63,71 @@ def _cg_beta(rz: wp.array(dtype=wp.float64), k: int):
 @wp.kernel
 def _residual_kernel(b: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3),
                      free: wp.array(dtype=float), r: wp.array(dtype=wp.vec3),
-                     sums: wp.array(dtype=wp.float64), slot: int):
-    i = wp.tid()
-    ri = (b[i] - ax[i]) * free[i]
-    r[i] = ri
-    wp.atomic_add(sums, slot, wp.float64(wp.dot(ri, ri)))
+                     sums: wp.array(dtype=wp.float64), slot: int, num_threads: int):
+    """r = b - Ax (free vertices); sums[slot] += r.r. Each thread strides over the vertices
+    and adds its total once (`util.stride_threads`), as do the kernels below."""
+    t = wp.tid()
+    acc = wp.float64(0.0)
+    for i in range(t, b.shape[0], num_threads):
+        ri = (b[i] - ax[i]) * free[i]
+        r[i] = ri
+        acc += wp.float64(wp.dot(ri, ri))
+    wp.atomic_add(sums, slot, acc)
 
 
 @wp.kernel
 def _norm2_kernel(b: wp.array(dtype=wp.vec3), free: wp.array(dtype=float),
-                  sums: wp.array(dtype=wp.float64), slot: int):
-    i = wp.tid()
-    bi = b[i] * free[i]
-    wp.atomic_add(sums, slot, wp.float64(wp.dot(bi, bi)))
+                  sums: wp.array(dtype=wp.float64), slot: int, num_threads: int):
+    t = wp.tid()
+    acc = wp.float64(0.0)
+    for i in range(t, b.shape[0], num_threads):
+        bi = b[i] * free[i]
+        acc += wp.float64(wp.dot(bi, bi))
+    wp.atomic_add(sums, slot, acc)
 
 
 @wp.kernel
 def _jacobi_update_kernel(x: wp.array(dtype=wp.vec3), last: wp.array(dtype=wp.vec3),
                           b: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3),
                           dinv: wp.array(dtype=wp.mat33), free: wp.array(dtype=float),
-                          alpha: float, omega: float, sums: wp.array(dtype=wp.float64), slot: int):
+                          alpha: float, omega: float, sums: wp.array(dtype=wp.float64), slot: int,
+                          num_threads: int):
     """r = b - Ax; x_new = omega (x + alpha D^-1 r) + (1 - omega) last; last = x."""
-    i = wp.tid()
-    r = (b[i] - ax[i]) * free[i]
-    wp.atomic_add(sums, slot, wp.float64(wp.dot(r, r)))
-    xi = x[i]
-    xn = xi + alpha * (dinv[i] * r)
-    if omega != 1.0:
-        xn = omega * xn + (1.0 - omega) * last[i]
-    last[i] = xi
-    x[i] = xn
+    t = wp.tid()
+    acc = wp.float64(0.0)
+    for i in range(t, x.shape[0], num_threads):
+        r = (b[i] - ax[i]) * free[i]
+        acc += wp.float64(wp.dot(r, r))
+        xi = x[i]
+        xn = xi + alpha * (dinv[i] * r)
+        if omega != 1.0:
+            xn = omega * xn + (1.0 - omega) * last[i]
+        last[i] = xi
+        x[i] = xn
+    wp.atomic_add(sums, slot, acc)
 
 
 @wp.kernel
 def _cg_start_kernel(b: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3),
                      free: wp.array(dtype=float), dinv: wp.array(dtype=wp.mat33),
                      r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3),
-                     rz: wp.array(dtype=wp.float64), bnorm: wp.array(dtype=wp.float64)):
+                     rz: wp.array(dtype=wp.float64), bnorm: wp.array(dtype=wp.float64),
+                     num_threads: int):
     """r = b - A x (free vertices), z = D^-1 r, rz_0 = r.z, bnorm = |b|^2 (free vertices)."""
-    i = wp.tid()
-    fi = free[i]
-    bi = b[i] * fi
-    ri = (b[i] - ax[i]) * fi
-    zi = dinv[i] * ri
-    r[i] = ri
-    z[i] = zi
-    wp.atomic_add(rz, 0, wp.float64(wp.dot(ri, zi)))
-    wp.atomic_add(bnorm, 0, wp.float64(wp.dot(bi, bi)))
+    t = wp.tid()
+    s_rz = wp.float64(0.0)
+    s_bb = wp.float64(0.0)
+    for i in range(t, b.shape[0], num_threads):
+        fi = free[i]
+        bi = b[i] * fi
+        ri = (b[i] - ax[i]) * fi
+        zi = dinv[i] * ri
+        r[i] = ri
+        z[i] = zi
+        s_rz += wp.float64(wp.dot(ri, zi))
+        s_bb += wp.float64(wp.dot(bi, bi))
+    wp.atomic_add(rz, 0, s_rz)
+    wp.atomic_add(bnorm, 0, s_bb)
 
 
 @wp.kernel
@@ -117,38 +135,47 @@ def _cg_update_kernel(x: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3),
                       z: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3),
                       ap: wp.array(dtype=wp.vec3), dinv: wp.array(dtype=wp.mat33),
                       free: wp.array(dtype=float), rz: wp.array(dtype=wp.float64),
-                      pap: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.float64), k: int):
+                      pap: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.float64), k: int,
+                      num_threads: int):
     """alpha = rz_k / pAp_k; x += alpha p; r -= alpha Ap; z = D^-1 r; rz_{k+1} = r.z; rr_k = r.r."""
-    i = wp.tid()
+    t = wp.tid()
     alpha = wp.float64(0.0)
     if pap[k] > wp.float64(0.0):
         alpha = rz[k] / pap[k]
     a = float(alpha)
-    x[i] = x[i] + a * p[i]
-    ri = (r[i] - a * ap[i]) * free[i]
-    r[i] = ri
-    zi = dinv[i] * ri
-    z[i] = zi
-    wp.atomic_add(rz, k + 1, wp.float64(wp.dot(ri, zi)))
-    wp.atomic_add(rr, k, wp.float64(wp.dot(ri, ri)))
+    s_rz = wp.float64(0.0)
+    s_rr = wp.float64(0.0)
+    for i in range(t, x.shape[0], num_threads):
+        x[i] = x[i] + a * p[i]
+        ri = (r[i] - a * ap[i]) * free[i]
+        r[i] = ri
+        zi = dinv[i] * ri
+        z[i] = zi
+        s_rz += wp.float64(wp.dot(ri, zi))
+        s_rr += wp.float64(wp.dot(ri, ri))
+    wp.atomic_add(rz, k + 1, s_rz)
+    wp.atomic_add(rr, k, s_rr)
 
 
 @wp.kernel
 def _cg_direction_kernel(z: wp.array(dtype=wp.vec3), az: wp.array(dtype=wp.vec3),
                          free: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
                          ap: wp.array(dtype=wp.vec3), rz: wp.array(dtype=wp.float64),
-                         pap: wp.array(dtype=wp.float64), k: int):
+                         pap: wp.array(dtype=wp.float64), k: int, num_threads: int):
     """beta = rz_k / rz_{k-1} (0 at k = 0); p = z + beta p; Ap = A z + beta Ap; pAp_k = p . Ap."""
-    i = wp.tid()
-    pi = z[i]
-    api = az[i]
-    if k > 0:
-        beta = _cg_beta(rz, k)
-        pi = pi + beta * p[i]
-        api = api + beta * ap[i]
-    p[i] = pi
-    ap[i] = api
-    wp.atomic_add(pap, k, wp.float64(wp.dot(pi, api) * free[i]))
+    t = wp.tid()
+    beta = _cg_beta(rz, k)
+    acc = wp.float64(0.0)
+    for i in range(t, z.shape[0], num_threads):
+        pi = z[i]
+        api = az[i]
+        if k > 0:
+            pi = pi + beta * p[i]
+            api = api + beta * ap[i]
+        p[i] = pi
+        ap[i] = api
+        acc += wp.float64(wp.dot(pi, api) * free[i])
+    wp.atomic_add(pap, k, acc)
 
 
 @wp.kernel
@@ -162,14 +189,18 @@ def _unit_fill_kernel(free: wp.array(dtype=float), k: int, out: wp.array(dtype=w
 
 @wp.kernel
 def _sum_rows_kernel(v: wp.array(dtype=wp.vec3), free: wp.array(dtype=float),
-                     out: wp.array(dtype=wp.float64), first: int):
+                     out: wp.array(dtype=wp.float64), first: int, num_threads: int):
     """``out[first:first + 3] += sum_i free_i v_i`` (float64)."""
-    i = wp.tid()
-    f = free[i]
-    if f != 0.0:
-        vi = v[i]
-        for j in range(3):
-            wp.atomic_add(out, first + j, wp.float64(f * vi[j]))
+    t = wp.tid()
+    acc = wp.vec3d()
+    for i in range(t, v.shape[0], num_threads):
+        f = free[i]
+        if f != 0.0:
+            vi = v[i]
+            acc = acc + wp.vec3d(wp.float64(f * vi[0]), wp.float64(f * vi[1]),
+                                 wp.float64(f * vi[2]))
+    for j in range(3):
+        wp.atomic_add(out, first + j, acc[j])
 
 
 @wp.kernel
@@ -243,17 +274,19 @@ class _Base:
         # after the iterations ``z`` and ``ax`` are free to hold the translations and their
         # products (allocated with the solver's arrays: nothing allocated inside a step)
         d, n = A.device, A.n
+        th = stride_threads(n, d)
         self.tsums.zero_()
         for k in range(3):
             launch(_unit_fill_kernel, n, [A.free, k, self.z], device=d)
             A.matvec(self.z, self.ax)
-            launch(_sum_rows_kernel, n, [self.ax, A.free, self.tsums, 3 * k], device=d)
-        launch(_sum_rows_kernel, n, [r, A.free, self.tsums, 9], device=d)
+            launch(_sum_rows_kernel, th, [self.ax, A.free, self.tsums, 3 * k, th], device=d)
+        launch(_sum_rows_kernel, th, [r, A.free, self.tsums, 9, th], device=d)
         launch(_translate_kernel, n, [x, A.free, self.tsums], device=d)
 
     def _bnorm2(self, A, b):
         self.bnorm.zero_()
-        launch(_norm2_kernel, A.n, [b, A.free, self.bnorm, 0], device=A.device)
+        th = stride_threads(A.n, A.device)
+        launch(_norm2_kernel, th, [b, A.free, self.bnorm, 0, th], device=A.device)
 
     def solve(self, A, b, x, iterations: int | None = None, tolerance=..., ) -> dict:
         """Solve ``A x = b`` starting from ``x`` (updated in place). Returns
@@ -284,6 +317,7 @@ class JacobiSolver(_Base):
         if iters + 2 > self.s1.shape[0]:
             self.s1 = wp.zeros(iters + 2, dtype=wp.float64, device=A.device)
         d = A.device
+        th = stride_threads(A.n, d)
         sums = self.s1
         sums.zero_()
         wp.copy(self.last, x)
@@ -301,8 +335,8 @@ class JacobiSolver(_Base):
         while k < iters:
             A.matvec(x, self.ax)
             om = 1.0 if fallback else omegas[k]
-            launch(_jacobi_update_kernel, A.n,
-                   [x, self.last, b, self.ax, A.diag_inv, A.free, self.alpha, om, sums, k],
+            launch(_jacobi_update_kernel, th,
+                   [x, self.last, b, self.ax, A.diag_inv, A.free, self.alpha, om, sums, k, th],
                    device=d)
             k += 1
             if check is not None and (k % check == 0 or k == iters):
@@ -326,7 +360,7 @@ class JacobiSolver(_Base):
             A.matvec(x, self.ax)
             tmp = self.s2
             tmp.zero_()
-            launch(_residual_kernel, A.n, [b, self.ax, A.free, self.r, tmp, 0], device=d)
+            launch(_residual_kernel, th, [b, self.ax, A.free, self.r, tmp, 0, th], device=d)
             res = math.sqrt(float(tmp.numpy()[0])) / bn
         return {"iterations": done, "residual": res,
                 "converged": converged or (tol is not None and res < tol), "fallback": fallback}
@@ -404,8 +438,9 @@ class CGSolver(_Base):
         rz, pap, rr = self.s1, self.s2, self.s3
         rz.zero_(), pap.zero_(), rr.zero_(), self.bnorm.zero_()
         A.matvec(x, self.ax)
-        launch(_cg_start_kernel, n,
-               [b, self.ax, A.free, A.diag_inv, self.r, self.z, rz, self.bnorm], device=d)
+        th = stride_threads(n, d)
+        launch(_cg_start_kernel, th,
+               [b, self.ax, A.free, A.diag_inv, self.r, self.z, rz, self.bnorm, th], device=d)
         self._precondition(A, rz, 0)
         fused = getattr(A, "cg_direction", None)
         bn = None
@@ -415,10 +450,10 @@ class CGSolver(_Base):
         for k in range(iters):
             if fused is None or not fused(self.z, self.p, self.ap, rz, pap, k):
                 A.matvec(self.z, self.ax)
-                launch(_cg_direction_kernel, n,
-                       [self.z, self.ax, A.free, self.p, self.ap, rz, pap, k], device=d)
-            launch(_cg_update_kernel, n,
-                   [x, self.r, self.z, self.p, self.ap, A.diag_inv, A.free, rz, pap, rr, k],
+                launch(_cg_direction_kernel, th,
+                       [self.z, self.ax, A.free, self.p, self.ap, rz, pap, k, th], device=d)
+            launch(_cg_update_kernel, th,
+                   [x, self.r, self.z, self.p, self.ap, A.diag_inv, A.free, rz, pap, rr, k, th],
                    device=d)
             self._precondition(A, rz, k + 1)
             if check is not None and ((k + 1) % check == 0 or k + 1 == iters):
@@ -501,20 +536,24 @@ def _spring_cg_direction_kernel(z: wp.array(dtype=wp.vec3), mass: wp.array(dtype
                                 s_cols: wp.array(dtype=wp.int32), s_vals: wp.array(dtype=float),
                                 free: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
                                 ap: wp.array(dtype=wp.vec3), rz: wp.array(dtype=wp.float64),
-                                pap: wp.array(dtype=wp.float64), k: int):
+                                pap: wp.array(dtype=wp.float64), k: int, num_threads: int):
     """CG direction with its matvec fused: beta = rz_k / rz_{k-1} (0 at k = 0);
     p = z + beta p; Ap = A z + beta Ap (A p by linearity, so p need not be complete before the
     matvec); pAp_k = p . Ap (free vertices)."""
-    i = wp.tid()
-    pi = z[i]
-    api = spring_row_apply(z, i, scale, mass, offsets, other, coef, s_offsets, s_cols, s_vals)
-    if k > 0:
-        beta = _cg_beta(rz, k)
-        pi = pi + beta * p[i]
-        api = api + beta * ap[i]
-    p[i] = pi
-    ap[i] = api
-    wp.atomic_add(pap, k, wp.float64(wp.dot(pi, api) * free[i]))
+    t = wp.tid()
+    beta = _cg_beta(rz, k)
+    acc = wp.float64(0.0)
+    for i in range(t, z.shape[0], num_threads):
+        pi = z[i]
+        api = spring_row_apply(z, i, scale, mass, offsets, other, coef, s_offsets, s_cols,
+                               s_vals)
+        if k > 0:
+            pi = pi + beta * p[i]
+            api = api + beta * ap[i]
+        p[i] = pi
+        ap[i] = api
+        acc += wp.float64(wp.dot(pi, api) * free[i])
+    wp.atomic_add(pap, k, acc)
 
 
 @wp.kernel
@@ -540,19 +579,22 @@ def _spring_cg_direction_vb_kernel(z: wp.array(dtype=wp.vec3), mass: wp.array(dt
                                    vblock: wp.array(dtype=wp.mat33),
                                    free: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
                                    ap: wp.array(dtype=wp.vec3), rz: wp.array(dtype=wp.float64),
-                                   pap: wp.array(dtype=wp.float64), k: int):
+                                   pap: wp.array(dtype=wp.float64), k: int, num_threads: int):
     """`_spring_cg_direction_kernel` plus a per-vertex block (the contact term's Hessian)."""
-    i = wp.tid()
-    pi = z[i]
-    api = (spring_row_apply(z, i, scale, mass, offsets, other, coef, s_offsets, s_cols, s_vals)
-           + vblock[i] * pi)
-    if k > 0:
-        beta = _cg_beta(rz, k)
-        pi = pi + beta * p[i]
-        api = api + beta * ap[i]
-    p[i] = pi
-    ap[i] = api
-    wp.atomic_add(pap, k, wp.float64(wp.dot(pi, api) * free[i]))
+    t = wp.tid()
+    beta = _cg_beta(rz, k)
+    acc = wp.float64(0.0)
+    for i in range(t, z.shape[0], num_threads):
+        pi = z[i]
+        api = (spring_row_apply(z, i, scale, mass, offsets, other, coef, s_offsets, s_cols,
+                                s_vals) + vblock[i] * pi)
+        if k > 0:
+            pi = pi + beta * p[i]
+            api = api + beta * ap[i]
+        p[i] = pi
+        ap[i] = api
+        acc += wp.float64(wp.dot(pi, api) * free[i])
+    wp.atomic_add(pap, k, acc)
 
 
 @wp.kernel
@@ -646,6 +688,7 @@ class SpringSystemOperator:
         self.model = model
         self.n = model.num_vertices
         self.device = model.device
+        self.threads = stride_threads(self.n, self.device)  # `cg_direction`
         self.mass_scale = float(mass_scale)
         self.extra = list(extra)
         d = self.device
@@ -720,13 +763,13 @@ class SpringSystemOperator:
         if self.extra:
             return False
         if self.vertex_blocks is not None:
-            launch(_spring_cg_direction_vb_kernel, self.n,
+            launch(_spring_cg_direction_vb_kernel, self.threads,
                    [z, self.model.mass, self.mass_scale, *self._rows(), self.vertex_blocks,
-                    self.free, p, ap, rz, pap, k], device=self.device)
+                    self.free, p, ap, rz, pap, k, self.threads], device=self.device)
             return True
-        launch(_spring_cg_direction_kernel, self.n,
+        launch(_spring_cg_direction_kernel, self.threads,
                [z, self.model.mass, self.mass_scale, *self._rows(), self.free, p, ap, rz,
-                pap, k], device=self.device)
+                pap, k, self.threads], device=self.device)
         return True
 
 
@@ -777,6 +820,7 @@ def estimate_spectral_radius(A, alpha: float = 0.66, iterations: int = 60, seed:
     measured by running the iteration on ``A e = 0`` from a random start: the geometric mean of
     the last residual ratios. Use it to set `ChebyshevSolver` ``rho`` (slightly above is unsafe)."""
     n, d = A.n, A.device
+    th = stride_threads(n, d)
     rng = np.random.default_rng(seed)
     x = wp.array(rng.standard_normal((n, 3)).astype(np.float32) * A.free.numpy()[:, None],
                  dtype=wp.vec3, device=d)
@@ -797,8 +841,8 @@ def estimate_spectral_radius(A, alpha: float = 0.66, iterations: int = 60, seed:
         iterations = 0
     for k in range(iterations):
         A.matvec(x, ax)
-        launch(_jacobi_update_kernel, n, [x, last, b, ax, A.diag_inv, A.free, float(alpha), 1.0,
-                                          sums, k], device=d)
+        launch(_jacobi_update_kernel, th, [x, last, b, ax, A.diag_inv, A.free, float(alpha),
+                                           1.0, sums, k, th], device=d)
     r = np.sqrt(sums.numpy())
     r = r[-tail:]
     if r[0] <= 0:
