@@ -315,7 +315,7 @@ def test_implicit_on_mesh_features_gains_no_energy_while_the_torus_rests():
 
 def test_self_contact_term_full_hessian_matches_finite_differences():
     """Self-contacts inside the Newton solve: the Hessian of the active multi-vertex entries
-    (diagonal blocks in ``vblock`` plus the off-diagonal coupling of `pair_matvec_kernel`) is
+    (diagonal blocks in ``vblock`` plus the off-diagonal coupling of `pair_matvec_list_kernel`) is
     the Jacobian of their force, across vertices (central differences); inactive entries add
     nothing. A pinned vertex is eliminated (no row, no column)."""
     from types import SimpleNamespace

@@ -21,7 +21,7 @@ to the diagonal can only lower the spectral radius of the Jacobi iteration (Rayl
   at every Newton iterate: ``E_c`` is C^1 and piecewise quadratic). Entries with several
   vertices (vertex-triangle, edge-edge: self-contacts, cloth edges on a mesh's sharp features)
   get their full Hessian: the diagonal blocks there and the off-diagonal coupling as an
-  operator term (`pair_matvec_kernel`, through `matvec_add`). With the diagonal blocks alone,
+  operator term (`pair_matvec_list_kernel`, through `matvec_add`). With the diagonal blocks alone,
   Newton did not converge where cloth rests on such entries, and the response after the solve
   lifted the cloth out every step: a 16 x 16 sheet on the ``mesh`` scene's resting torus gained
   up to 1.9e-2 J in a frame (1.9e-4 J with the full Hessian).
@@ -402,7 +402,7 @@ def newton_contact_kernel(
     """Active entries: their force ``-grad E_c`` into ``b``; their blocks into ``diag`` and
     ``vblock`` (``w_j^2 H``), the normal penalty's alone into ``nblock`` (for the residual);
     the number of active entries into ``active[0]``; with an ``on_out`` array, each entry's
-    activity (the off-diagonal part of the multi-vertex entries' Hessian, `pair_matvec_kernel`)."""
+    activity (the off-diagonal part of the multi-vertex entries' Hessian, `pair_matvec_list_kernel`)."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
@@ -428,7 +428,8 @@ def newton_contact_kernel(
 def pair_matvec_entry(rec: ContactRecord, e: int, inv_mass: wp.array(dtype=float),
                       kappa_dt2: float, x: wp.array(dtype=wp.vec3),
                       out: wp.array(dtype=wp.vec3)):
-    """Entry ``e``'s off-diagonal Hessian blocks times ``x`` into ``out`` (`pair_matvec_kernel`)."""
+    """Entry ``e``'s off-diagonal Hessian blocks times ``x`` into ``out``
+    (`pair_matvec_list_kernel`)."""
     vid = rec.vertex[e]
     w = rec.weight[e]
     n = rec.normal[e]
@@ -449,21 +450,6 @@ def pair_matvec_entry(rec: ContactRecord, e: int, inv_mass: wp.array(dtype=float
 
 
 @wp.kernel
-def pair_matvec_kernel(rec: ContactRecord, on: wp.array(dtype=int),
-                       inv_mass: wp.array(dtype=float), kappa_dt2: float, num_threads: int,
-                       x: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
-    """The off-diagonal part of the active multi-vertex entries' Hessian
-    ``k (w w^T) (x) n n^T`` times ``x`` into ``out`` (the diagonal blocks ``k w_j^2 n n^T`` are
-    the operator's ``vertex_blocks``): ``out_j += k w_j n (n . sum_{l != j} w_l x_l)``, free
-    vertices only (pins are eliminated)."""
-    t = wp.tid()
-    count = wp.min(rec.count[0], rec.vertex.shape[0])
-    for e in range(t, count, num_threads):
-        if on[e] != 0:
-            pair_matvec_entry(rec, e, inv_mass, kappa_dt2, x, out)
-
-
-@wp.kernel
 def list_on_kernel(rec: ContactRecord, on: wp.array(dtype=int), num_threads: int,
                    out: wp.array(dtype=int), n: wp.array(dtype=int)):
     """The record's entries with ``on[e] != 0`` appended to ``out`` (``n[0]``, cleared by the
@@ -476,14 +462,37 @@ def list_on_kernel(rec: ContactRecord, on: wp.array(dtype=int), num_threads: int
 
 
 @wp.kernel
+def list_pairs_on_kernel(rec: ContactRecord, on: wp.array(dtype=int), num_threads: int,
+                         out: wp.array(dtype=int), n: wp.array(dtype=int)):
+    """`list_on_kernel` for the obstacle record: only the entries of two or more cloth
+    vertices (a cloth edge or triangle on a mesh's sharp feature), the only ones with an
+    off-diagonal Hessian block (a vertex-obstacle entry has none)."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    for e in range(t, count, num_threads):
+        if on[e] != 0:
+            vid = rec.vertex[e]
+            c = int(0)
+            for j in range(4):
+                if vid[j] >= 0:
+                    c += 1
+            if c >= 2:
+                out[wp.atomic_add(n, 0, 1)] = e
+
+
+@wp.kernel
 def pair_matvec_list_kernel(rec: ContactRecord, entries: wp.array(dtype=int),
                             n: wp.array(dtype=int), inv_mass: wp.array(dtype=float),
                             kappa_dt2: float, num_threads: int, x: wp.array(dtype=wp.vec3),
                             out: wp.array(dtype=wp.vec3)):
-    """`pair_matvec_kernel` over the listed entries only (`list_on_kernel`): in a folded
-    sheet's Newton and projective-dynamics solves 10-20 % of the self-contact record is active
-    (16 x 16 fold: 450-1,600 of 5,200-7,200 entries), and each inner iteration's product
-    otherwise walked the whole record."""
+    """The off-diagonal part of the listed entries' Hessian ``k (w w^T) (x) n n^T`` times
+    ``x`` into ``out`` (the diagonal blocks ``k w_j^2 n n^T`` are the operator's
+    ``vertex_blocks``): ``out_j += k w_j n (n . sum_{l != j} w_l x_l)``, free vertices only
+    (pins are eliminated). Only the active entries are listed (`list_on_kernel`,
+    `list_pairs_on_kernel`, at each assembly): in a folded sheet's Newton and
+    projective-dynamics solves 10-20 % of the self-contact record is active (16 x 16 fold:
+    450-1,600 of 5,200-7,200 entries), and each inner iteration's product otherwise walked
+    the whole record."""
     t = wp.tid()
     for q in range(t, n[0], num_threads):
         pair_matvec_entry(rec, entries[q], inv_mass, kappa_dt2, x, out)
@@ -668,7 +677,7 @@ def pd_contact_kernel(
     ``-k_c min(g, 0) w_j n`` (and friction); the blocks ``w_j^2 H`` into ``vblock`` for this
     iteration's global matrix (lumped, ``|w_j| sum_l |w_l| H``, for an entry of several cloth
     vertices whose off-diagonal part the operator does not hold); ``E_c`` into the objective;
-    with an ``on_out`` array, each entry's activity (`pair_matvec_kernel`). An entry marked in
+    with an ``on_out`` array, each entry's activity (`pair_matvec_list_kernel`). An entry marked in
     ``slide`` (the step's friction guess found its vertex driven past static friction) has a
     friction spring of ``slide_weight`` times ``k_c``: the inertia block, not 1000 times it
     (module doc)."""
@@ -953,6 +962,11 @@ class ContactCoupling:
                 self.nblock, self.active,
                 self.pairs_on if self.pairs_on is not None else self._no_flags],
                device=self.device)
+        if self.pairs_on is not None:  # the active feature pairs, listed for `matvec_add`
+            self.pairs_list_n.zero_()
+            launch(list_pairs_on_kernel, self.threads,
+                   [self.record, self.pairs_on, self.threads, self.pairs_list,
+                    self.pairs_list_n], device=self.device)
         self._dt = dt
         if self.self_record is not None:
             launch(newton_contact_kernel, self.self_threads,
@@ -996,6 +1010,12 @@ class ContactCoupling:
         self.slide = wp.zeros(max(cap, 1), dtype=int, device=self.device)
         self.pairs_on = (wp.zeros(max(cap, 1), dtype=int, device=self.device)
                          if self._feature_pairs else None)
+        # the active entries of several cloth vertices, listed at each Newton assembly
+        # (`add_newton`): each inner iteration's product walked the whole record (the table
+        # under implicit Euler: 28 us a product, 1,900 products a frame)
+        self.pairs_list = (wp.zeros(max(cap, 1), dtype=int, device=self.device)
+                           if self._feature_pairs else None)
+        self.pairs_list_n = wp.zeros(1, dtype=int, device=self.device)
 
     def _grow_self(self, capacity: int) -> None:
         """A self-contact record of ``capacity`` entries (allocation: outside a captured step)."""
@@ -1038,8 +1058,8 @@ class ContactCoupling:
         activity (`add_newton`; projective dynamics gives them lumped diagonal blocks instead,
         `pd_contact_kernel`, and skips them here), and the self-contacts."""
         if self.pairs_on is not None and self.pairs_in_operator:
-            launch(pair_matvec_kernel, self.threads,
-                   [self.record, self.pairs_on, self.model.inv_mass,
+            launch(pair_matvec_list_kernel, self.threads,
+                   [self.record, self.pairs_list, self.pairs_list_n, self.model.inv_mass,
                     self.kappa / (self._dt * self._dt), self.threads, x, out],
                    device=self.device)
         if self.self_record is not None:
