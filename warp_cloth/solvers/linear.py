@@ -60,6 +60,23 @@ def _cg_beta(rz: wp.array(dtype=wp.float64), k: int):
     return beta
 
 
+@wp.func
+def _cg_direction_row(i: int, k: int, beta: float, zi: wp.vec3, azi: wp.vec3,
+                      free: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
+                      ap: wp.array(dtype=wp.vec3)):
+    """Row ``i`` of CG's direction: ``p = z + beta p``, ``Ap = A z + beta Ap`` (``zi``,
+    ``azi``: row ``i`` of ``z`` and ``A z``; ``beta`` unused at ``k = 0``); returns its share
+    of ``p . Ap`` (free vertices)."""
+    pi = zi
+    api = azi
+    if k > 0:
+        pi = pi + beta * p[i]
+        api = api + beta * ap[i]
+    p[i] = pi
+    ap[i] = api
+    return wp.float64(wp.dot(pi, api) * free[i])
+
+
 @wp.kernel
 def _residual_kernel(b: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3),
                      free: wp.array(dtype=float), r: wp.array(dtype=wp.vec3),
@@ -167,14 +184,7 @@ def _cg_direction_kernel(z: wp.array(dtype=wp.vec3), az: wp.array(dtype=wp.vec3)
     beta = _cg_beta(rz, k)
     acc = wp.float64(0.0)
     for i in range(t, z.shape[0], num_threads):
-        pi = z[i]
-        api = az[i]
-        if k > 0:
-            pi = pi + beta * p[i]
-            api = api + beta * ap[i]
-        p[i] = pi
-        ap[i] = api
-        acc += wp.float64(wp.dot(pi, api) * free[i])
+        acc += _cg_direction_row(i, k, beta, z[i], az[i], free, p, ap)
     wp.atomic_add(pap, k, acc)
 
 
@@ -544,15 +554,9 @@ def _spring_cg_direction_kernel(z: wp.array(dtype=wp.vec3), mass: wp.array(dtype
     beta = _cg_beta(rz, k)
     acc = wp.float64(0.0)
     for i in range(t, z.shape[0], num_threads):
-        pi = z[i]
-        api = spring_row_apply(z, i, scale, mass, offsets, other, coef, s_offsets, s_cols,
+        azi = spring_row_apply(z, i, scale, mass, offsets, other, coef, s_offsets, s_cols,
                                s_vals)
-        if k > 0:
-            pi = pi + beta * p[i]
-            api = api + beta * ap[i]
-        p[i] = pi
-        ap[i] = api
-        acc += wp.float64(wp.dot(pi, api) * free[i])
+        acc += _cg_direction_row(i, k, beta, z[i], azi, free, p, ap)
     wp.atomic_add(pap, k, acc)
 
 
@@ -585,15 +589,10 @@ def _spring_cg_direction_vb_kernel(z: wp.array(dtype=wp.vec3), mass: wp.array(dt
     beta = _cg_beta(rz, k)
     acc = wp.float64(0.0)
     for i in range(t, z.shape[0], num_threads):
-        pi = z[i]
-        api = (spring_row_apply(z, i, scale, mass, offsets, other, coef, s_offsets, s_cols,
-                                s_vals) + vblock[i] * pi)
-        if k > 0:
-            pi = pi + beta * p[i]
-            api = api + beta * ap[i]
-        p[i] = pi
-        ap[i] = api
-        acc += wp.float64(wp.dot(pi, api) * free[i])
+        zi = z[i]
+        azi = (spring_row_apply(z, i, scale, mass, offsets, other, coef, s_offsets, s_cols,
+                                s_vals) + vblock[i] * zi)
+        acc += _cg_direction_row(i, k, beta, zi, azi, free, p, ap)
     wp.atomic_add(pap, k, acc)
 
 
