@@ -173,15 +173,15 @@ def count_since(counter, seen: int, slot: int = 0) -> tuple[int, int]:
     return total - int(seen), total
 
 
-def stride_threads(n: int, device) -> int:
-    """Threads for a per-vertex kernel that sums into a few float64 totals by striding over
-    its ``n`` elements (``for i in range(tid, n, threads)``): one on the CPU, whose backend
-    runs a launch's threads one after another on one core, so one thread's loop sums in
-    registers and adds each total once; ``n`` elsewhere (one element a thread, as a plain
-    launch). Summing every element into memory with ``wp.atomic_add`` cost CG's update about
-    twice its arithmetic on the CPU: each add waits for the last one to that address (measured
-    on 2,500 vertices: 38-48 us against 19-24 us a launch)."""
+def stride_threads(n: int, device, batch: int = 1) -> int:
+    """Threads for a kernel that strides over ``n`` elements (``for i in range(tid, n,
+    threads)``): one on the CPU, whose backend runs a launch's threads one after another on
+    one core (a thread that finds nothing to do still costs its call, and a thread's loop sums
+    in registers and adds each total once); one per ``batch`` elements elsewhere. The inner
+    solvers' per-vertex sums take ``batch=1`` (on a GPU one element a thread, as a plain
+    launch): summing every vertex into one float64 address with ``wp.atomic_add`` cost CG's
+    update about twice its arithmetic on the CPU, each add waiting for the last (2,500
+    vertices: 38-48 us against 19-24 us a launch). Contact records take 16 (`record_threads`)."""
     if wp.get_device(device).is_cpu:
         return 1
-    return max(1, int(n))
-
+    return max(1, -(-int(n) // int(batch)))

@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..util import stride_threads
+
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = ["ContactRecord", "make_record", "entry_gap", "KIND_VERTEX_OBSTACLE",
@@ -59,12 +61,8 @@ class ContactRecord:
 
 def record_threads(entries: int, device, batch: int = 16) -> int:
     """Threads for a kernel that strides over up to ``entries`` record entries: one per
-    ``batch`` on a GPU; one on the CPU, whose backend runs a launch's threads one after another
-    on one core anyway (a thread that finds nothing to do still costs its call: with thousands
-    of them, more than a short record's work)."""
-    if wp.get_device(device).is_cpu:
-        return 1
-    return max(1, -(-int(entries) // int(batch)))
+    ``batch`` on a GPU; one on the CPU (`util.stride_threads`)."""
+    return stride_threads(entries, device, batch)
 
 
 def make_record(capacity: int, device) -> ContactRecord:

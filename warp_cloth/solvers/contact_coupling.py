@@ -450,33 +450,24 @@ def pair_matvec_entry(rec: ContactRecord, e: int, inv_mass: wp.array(dtype=float
 
 
 @wp.kernel
-def list_on_kernel(rec: ContactRecord, on: wp.array(dtype=int), num_threads: int,
-                   out: wp.array(dtype=int), n: wp.array(dtype=int)):
-    """The record's entries with ``on[e] != 0`` appended to ``out`` (``n[0]``, cleared by the
-    caller, counts them; in record order on the CPU, whose launch runs one thread)."""
+def list_on_kernel(rec: ContactRecord, on: wp.array(dtype=int), min_vertices: int,
+                   num_threads: int, out: wp.array(dtype=int), n: wp.array(dtype=int)):
+    """The record's entries with ``on[e] != 0`` and at least ``min_vertices`` cloth vertices
+    appended to ``out`` (``n[0]``, cleared by the caller, counts them; in record order on the
+    CPU, whose launch runs one thread). The obstacle record lists its entries of two or more
+    (a cloth edge or triangle on a mesh's sharp feature: the only ones with an off-diagonal
+    Hessian block); the self-contact record all of them (0)."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
         if on[e] != 0:
-            out[wp.atomic_add(n, 0, 1)] = e
-
-
-@wp.kernel
-def list_pairs_on_kernel(rec: ContactRecord, on: wp.array(dtype=int), num_threads: int,
-                         out: wp.array(dtype=int), n: wp.array(dtype=int)):
-    """`list_on_kernel` for the obstacle record: only the entries of two or more cloth
-    vertices (a cloth edge or triangle on a mesh's sharp feature), the only ones with an
-    off-diagonal Hessian block (a vertex-obstacle entry has none)."""
-    t = wp.tid()
-    count = wp.min(rec.count[0], rec.vertex.shape[0])
-    for e in range(t, count, num_threads):
-        if on[e] != 0:
-            vid = rec.vertex[e]
             c = int(0)
-            for j in range(4):
-                if vid[j] >= 0:
-                    c += 1
-            if c >= 2:
+            if min_vertices > 0:
+                vid = rec.vertex[e]
+                for j in range(4):
+                    if vid[j] >= 0:
+                        c += 1
+            if c >= min_vertices:
                 out[wp.atomic_add(n, 0, 1)] = e
 
 
@@ -488,8 +479,8 @@ def pair_matvec_list_kernel(rec: ContactRecord, entries: wp.array(dtype=int),
     """The off-diagonal part of the listed entries' Hessian ``k (w w^T) (x) n n^T`` times
     ``x`` into ``out`` (the diagonal blocks ``k w_j^2 n n^T`` are the operator's
     ``vertex_blocks``): ``out_j += k w_j n (n . sum_{l != j} w_l x_l)``, free vertices only
-    (pins are eliminated). Only the active entries are listed (`list_on_kernel`,
-    `list_pairs_on_kernel`, at each assembly): in a folded sheet's Newton and
+    (pins are eliminated). Only the active entries are listed (`list_on_kernel`, at each
+    assembly): in a folded sheet's Newton and
     projective-dynamics solves 10-20 % of the self-contact record is active (16 x 16 fold:
     450-1,600 of 5,200-7,200 entries), and each inner iteration's product otherwise walked
     the whole record."""
@@ -964,8 +955,8 @@ class ContactCoupling:
                device=self.device)
         if self.pairs_on is not None:  # the active feature pairs, listed for `matvec_add`
             self.pairs_list_n.zero_()
-            launch(list_pairs_on_kernel, self.threads,
-                   [self.record, self.pairs_on, self.threads, self.pairs_list,
+            launch(list_on_kernel, self.threads,
+                   [self.record, self.pairs_on, 2, self.threads, self.pairs_list,
                     self.pairs_list_n], device=self.device)
         self._dt = dt
         if self.self_record is not None:
@@ -979,7 +970,7 @@ class ContactCoupling:
         """The self-contacts `self_on` marks, listed for `matvec_add` (after each assembly)."""
         self.self_list_n.zero_()
         launch(list_on_kernel, self.self_threads,
-               [self.self_record, self.self_on, self.self_threads, self.self_list,
+               [self.self_record, self.self_on, 0, self.self_threads, self.self_list,
                 self.self_list_n], device=self.device)
 
     def mark_free(self, free) -> None:

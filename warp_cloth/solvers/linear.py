@@ -257,6 +257,7 @@ class _Base:
             return
         n, d = A.n, A.device
         self._n, self._device = n, d
+        self.threads = stride_threads(n, d)  # the per-vertex kernels' (`util.stride_threads`)
         self.ax = wp.zeros(n, dtype=wp.vec3, device=d)
         self.r = wp.zeros(n, dtype=wp.vec3, device=d)
         self.z = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -283,8 +284,7 @@ class _Base:
         it the step changes the cloth's momentum only as its linearised forces do."""
         # after the iterations ``z`` and ``ax`` are free to hold the translations and their
         # products (allocated with the solver's arrays: nothing allocated inside a step)
-        d, n = A.device, A.n
-        th = stride_threads(n, d)
+        d, n, th = A.device, A.n, self.threads
         self.tsums.zero_()
         for k in range(3):
             launch(_unit_fill_kernel, n, [A.free, k, self.z], device=d)
@@ -295,7 +295,7 @@ class _Base:
 
     def _bnorm2(self, A, b):
         self.bnorm.zero_()
-        th = stride_threads(A.n, A.device)
+        th = self.threads
         launch(_norm2_kernel, th, [b, A.free, self.bnorm, 0, th], device=A.device)
 
     def solve(self, A, b, x, iterations: int | None = None, tolerance=..., ) -> dict:
@@ -326,8 +326,7 @@ class JacobiSolver(_Base):
         check = self.check_every if (tolerance is ... or tol is None) else (self.check_every or 1)
         if iters + 2 > self.s1.shape[0]:
             self.s1 = wp.zeros(iters + 2, dtype=wp.float64, device=A.device)
-        d = A.device
-        th = stride_threads(A.n, d)
+        d, th = A.device, self.threads
         sums = self.s1
         sums.zero_()
         wp.copy(self.last, x)
@@ -448,7 +447,7 @@ class CGSolver(_Base):
         rz, pap, rr = self.s1, self.s2, self.s3
         rz.zero_(), pap.zero_(), rr.zero_(), self.bnorm.zero_()
         A.matvec(x, self.ax)
-        th = stride_threads(n, d)
+        th = self.threads
         launch(_cg_start_kernel, th,
                [b, self.ax, A.free, A.diag_inv, self.r, self.z, rz, self.bnorm, th], device=d)
         self._precondition(A, rz, 0)
