@@ -112,6 +112,24 @@ def test_stability_classifier_on_synthetic_trajectories():
         c(e_ok, s_ok, 0.01, 0.0)
 
 
+def test_strict_stability_classes():
+    """``--strict`` (the extremes issue's check): no stretch floor, and a one-frame energy rise
+    beyond float32 rounding is a gain even while the energy stays below its start."""
+    c = stability.classify
+    strict = dict(stretch_floor=0.0, rise_tol=stability.STRICT_RISE)
+    e_ok = [1.0, 0.9, 0.7, 0.65]
+    # the floor's noise allowance is gone: 8e-4 against a 1e-6 reference is over-stretched
+    assert c(e_ok, [0.0, 5e-4, 8e-4, 1e-4], 1e-6, 1.0, **strict) == ("O", 1)
+    assert c(e_ok, [0.0, 1e-6, 2e-6, 1e-6], 1e-6, 1.0, **strict) == ("S", None)
+    # a rise from 0.7 back to 0.8 stays below the start (not a gain by default) but is one here
+    e_up = [1.0, 0.9, 0.7, 0.8, 0.6]
+    assert c(e_up, [0.0] * 5, 0.01, 1.0) == ("S", None)
+    assert c(e_up, [0.0] * 5, 0.01, 1.0, **strict) == ("E", 3)
+    # rounding-sized wobbles (below STRICT_RISE of the scale) are not gains
+    e_flat = [1.0, 1.0 - 1e-7, 1.0 - 5e-8, 1.0 - 2e-7]
+    assert c(e_flat, [0.0] * 4, 0.01, 1.0, **strict) == ("S", None)
+
+
 def test_stability_cells_follow_the_theory():
     ref = stability.reference_strain(1e3, 1.0, 4, 0.1, ref_dt=1 / 500)
     assert 0 < ref < 0.05

@@ -19,6 +19,11 @@ then classified by `classify`, first match wins:
   and a Newton tolerance of 1e-6 m, over the same duration;
 - ``S``: stable - finite, no energy gained, stretch within the factor of the reference.
 
+``--strict`` is the extremes issue's own check, without the two allowances above: a cell gains
+energy when any frame's energy exceeds the frame before's by more than `STRICT_RISE` of ``M g
+size`` (float32 rounding of the state: about 1e-7 of it), and is over-stretched above the factor
+times the reference's strain with no absolute floor.
+
 The letter is followed by the first frame where its test failed (``D12``, ``E3``, ``O5``).
 Outputs (``--out-dir``): ``stability.csv`` (with every cell's max strain, energy gain and the
 reference strain), ``stability.md`` (one table per method and mass ratio), and with matplotlib
@@ -47,18 +52,23 @@ QUICK_DT = [1 / 2000, 1 / 120, 1 / 30]
 CLASSES = {"D": "diverged", "E": "gains energy", "O": "over-stretched", "S": "stable"}
 #: absolute strain added to the reference's times the factor (float32 noise at very stiff k)
 STRETCH_FLOOR = 1e-3
+#: ``--strict``: a one-frame energy rise above this share of ``M g size`` counts as a gain
+STRICT_RISE = 1e-6
 GRAVITY = 9.81
 
 
 def classify(energies, strains, ref_strain: float, energy_scale: float, *,
              diverged_frame: int | None = None, energy_tol: float = 0.01,
-             stretch_factor: float = 2.0, stretch_floor: float = STRETCH_FLOOR):
+             stretch_factor: float = 2.0, stretch_floor: float = STRETCH_FLOOR,
+             rise_tol: float | None = None):
     """Classify one cell from its per-frame records. Returns ``(status, frame)``.
 
     ``energies[f]`` and ``strains[f]``: total energy (J) and largest edge strain of frame ``f``
     (frame 0 the start) for the frames that ran; ``diverged_frame``: the frame the divergence
     guard stopped the run at, or None. ``energy_scale``: J; a rise of ``energy_tol`` times it
-    over the start counts as a gain. A non-finite record counts as divergence at that frame.
+    over the start counts as a gain; with ``rise_tol``, so does any frame's rise over the frame
+    before by more than ``rise_tol`` times it (``--strict``: energy never grows). A non-finite
+    record counts as divergence at that frame.
     """
     e = np.asarray(energies, dtype=np.float64)
     s = np.asarray(strains, dtype=np.float64)
@@ -71,6 +81,9 @@ def classify(energies, strains, ref_strain: float, energy_scale: float, *,
     if not (math.isfinite(energy_scale) and energy_scale > 0):
         raise ValueError(f"energy_scale must be > 0 J, got {energy_scale!r}")
     gain = np.flatnonzero(e - e[0] > energy_tol * energy_scale)
+    if rise_tol is not None:
+        rises = np.flatnonzero(np.diff(e) > rise_tol * energy_scale) + 1
+        gain = np.union1d(gain, rises)
     if len(gain):
         return "E", int(gain[0])
     over = np.flatnonzero(s > stretch_factor * ref_strain + stretch_floor)
@@ -148,10 +161,13 @@ def reference_strain(k, ratio, res, duration, ref_dt=1 / 2000, density=0.15) -> 
 
 
 def run_cell(method, k, dt, ratio, res, duration, ref_strain, density=0.15, energy_tol=0.01,
-             stretch_factor=2.0):
+             stretch_factor=2.0, strict=False):
+    """One cell, classified (`classify`; ``strict``: no stretch floor, no one-frame rise)."""
     energies, strains, div, secs, scale = simulate(method, k, dt, ratio, res, duration, density)
     status, frame = classify(energies, strains, ref_strain, scale, diverged_frame=div,
-                             energy_tol=energy_tol, stretch_factor=stretch_factor)
+                             energy_tol=energy_tol, stretch_factor=stretch_factor,
+                             stretch_floor=0.0 if strict else STRETCH_FLOOR,
+                             rise_tol=STRICT_RISE if strict else None)
     fin = [s for s in strains if math.isfinite(s)]
     efin = [e for e in energies if math.isfinite(e)]
     return {"status": status, "frame": frame, "max_strain": max(fin) if fin else math.nan,
@@ -167,14 +183,14 @@ def _crashed_cell(args, msg):
 
 
 def parallel_cells(methods, ratios, ks, dts, res, duration, refs, energy_tol, stretch_factor,
-                   workers, address) -> dict:
+                   workers, address, strict=False) -> dict:
     """The cells on `warp_cloth.sweep.map_cells` (Ray when installed, else a process pool);
     ``refs[(k, ratio)]``: the converged reference strains (computed first, in this process)."""
     from ..sweep import map_cells
 
     grid = [(m, k, dt, r) for m in methods for r in ratios for k in ks for dt in dts]
     out = map_cells(run_cell, [(m, k, dt, r, res, duration, refs[(k, r)], 0.15, energy_tol,
-                                stretch_factor) for m, k, dt, r in grid],
+                                stretch_factor, strict) for m, k, dt, r in grid],
                     workers=workers, address=address,
                     warm_with=("hanging", sorted({split_method(m)[0] for m in methods})),
                     on_crash=_crashed_cell)
@@ -235,6 +251,9 @@ def main(argv=None) -> int:
     p.add_argument("--stretch-factor", type=float, default=2.0,
                    help="over-stretched above this times the reference's strain (+0.1 %%)")
     p.add_argument("--ref-dt", type=float, default=1 / 2000, help="reference step (s)")
+    p.add_argument("--strict", action="store_true",
+                   help="no stretch floor, and any one-frame energy rise (beyond float32 "
+                        "rounding) is a gain")
     p.add_argument("--out-dir", default="bench_out")
     p.add_argument("--quick", action="store_true")
     p.add_argument("--device", default=None)
@@ -288,7 +307,7 @@ def main(argv=None) -> int:
         if args.workers is not None and args.workers < 1:
             p.error("--workers must be positive")
         cells = parallel_cells(methods, ratios, ks, dts, res, duration, refs, args.energy_tol,
-                               args.stretch_factor, args.workers, args.address)
+                               args.stretch_factor, args.workers, args.address, args.strict)
     total = len(methods) * len(ks) * len(dts) * len(ratios)
     n = 0
     for m in (methods if not cells else ()):
@@ -302,7 +321,8 @@ def main(argv=None) -> int:
                         sys.stderr.flush()
                     cells[(m, k, dt, ratio)] = run_cell(m, k, dt, ratio, res, duration,
                                                         refs[(k, ratio)], energy_tol=args.energy_tol,
-                                                        stretch_factor=args.stretch_factor)
+                                                        stretch_factor=args.stretch_factor,
+                                                        strict=args.strict)
     if tty:
         sys.stderr.write("\n")
     rows = [{"method": m, "stiffness": k, "dt": dt, "mass_ratio": r, **c}
@@ -311,11 +331,15 @@ def main(argv=None) -> int:
     cmd = (f"warp-cloth bench stability --res {res} --duration {duration:g} --ratios "
            f"{','.join(f'{r:g}' for r in ratios)} --ks {','.join(f'{k:g}' for k in ks)} --dts "
            f"{','.join(fmt_dt(d) for d in dts)}" + (" --quick" if args.quick else "")
-           + ("" if args.methods is None else f" --methods {','.join(methods)}"))
+           + ("" if args.methods is None else f" --methods {','.join(methods)}")
+           + (" --strict" if args.strict else ""))
+    floor = 0.0 if args.strict else STRETCH_FLOOR
+    gains = (f"any frame's energy above the frame before's by more than {STRICT_RISE:g} of M g "
+             f"(1 m), or " if args.strict else "")
     md = [f"# Stability map: hanging cloth, {res}x{res} cells, {duration:g} s per cell\n",
           f"Command: `{cmd}` ({time.perf_counter() - t0:.0f} s on this machine)\n",
           f"S = stable; O<f> = over-stretched: strain above {args.stretch_factor:g} x the "
-          f"converged reference's + {100 * STRETCH_FLOOR:g} % from frame f; E<f> = gains energy: "
+          f"converged reference's + {100 * floor:g} % from frame f; E<f> = gains energy: {gains}"
           f"total energy above its start by more than {100 * args.energy_tol:g} % of M g (1 m) "
           f"from frame f; D<f> = diverged (non-finite or strain above 1000 %) at frame f. Rows: "
           f"stiffness k [N/m]; columns: dt [s] per solver step; mass ratio = heavy/light "
