@@ -12,7 +12,7 @@ from warp_cloth.collision import (
     PENETRATION_TOLERANCE, Box, CollisionStage, KeyframePath, MeshObstacle, Motion,
     ObstacleContact, Plane, Sphere, quat_from_axis_angle,
 )
-from warp_cloth.collision import analytic, mesh_contact, motion
+from warp_cloth.collision import analytic, mesh_contact, motion, response
 from warp_cloth.contact_scenes import asset_path, sheet_model
 from warp_cloth.scene import suggest_substeps
 from warp_cloth.solvers import available
@@ -877,3 +877,81 @@ def test_far_test_of_a_moving_ball_is_conservative():
     truly_far = phi_min >= reach + 1e-3
     assert far[truly_far].mean() > 0.3  # not a test that calls everything near
     assert (~far).sum() > 100 and far.sum() > 1000
+
+
+@wp.kernel
+def _outcome_kernel(p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3),
+                    poses: wp.array(dtype=wp.transform), v: wp.array(dtype=wp.vec3), dt: float,
+                    vs: wp.array(dtype=wp.vec3), v_out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    vs[i] = response.pose_velocity(poses[0], poses[1], p[i], dt)
+    _, vo = response.contact_outcome(p[i], p[i], p[i], n[i], poses[0], poses[1], v[i], dt,
+                                     0.0, 0.0, 1, 0.005)
+    v_out[i] = vo
+
+
+def _pose(ob, t):
+    c, q = ob.pose(t)
+    return wp.transform(wp.vec3(*c), wp.quat(*q))
+
+
+def test_surface_velocity_of_a_turning_obstacle_is_tangent_to_it():
+    """A sphere turning at 3 rad/s about its centre (which also moves, in a second case):
+    `response.pose_velocity` at the end of a step is the material point's velocity there (the
+    host central difference of its poses), and an inelastic frictionless impulse leaves a
+    vertex that approached the spinning sphere's surface with no normal speed: its surface does
+    not move along its normal. The chord of the step, ``(T1 p - T0 p) / dt``, seemed to move it
+    outward at ``r w^2 dt / 2`` and pushed the cloth out at that speed (issue 12)."""
+    r, dt = 0.3, 1.0 / 60.0
+    rng = np.random.default_rng(3)
+    local = rng.normal(size=(16, 3))
+    local = (r / np.linalg.norm(local, axis=1))[:, None] * local  # on the surface
+    for velocity in ((0.0, 0.0, 0.0), (0.4, 0.0, -0.2)):
+        ball = Sphere(r, (0.0, 0.5, 0.0), motion=Motion(linear_velocity=velocity,
+                                                         angular_velocity=(0.0, 3.0, 0.0)))
+        t1 = 0.7
+        poses = wp.array([_pose(ball, t1 - dt), _pose(ball, t1)], dtype=wp.transform)
+        world = ball.to_world(local, t1)
+        n_world = (world - ball.pose(t1)[0]) / r
+        approach = -0.2 * n_world + 0.05 * rng.normal(size=(16, 3))  # moving into the surface
+        v = ball.surface_velocity(world, t1) + approach
+        vs = wp.zeros(16, dtype=wp.vec3)
+        v_out = wp.zeros(16, dtype=wp.vec3)
+        wp.launch(_outcome_kernel, 16, [wp.array(local, dtype=wp.vec3),
+                                        wp.array(local / r, dtype=wp.vec3), poses,
+                                        wp.array(v, dtype=wp.vec3), dt, vs, v_out])
+        # the step's mean turn about the centre where the point ends: the exact velocity of a
+        # steady motion at the step's end
+        np.testing.assert_allclose(vs.numpy(), ball.surface_velocity(world, t1), atol=1e-5)
+        rel = v_out.numpy() - ball.surface_velocity(world, t1)
+        # no normal speed relative to the surface, which is still along its normal
+        assert np.abs(np.sum(rel * n_world, axis=1)).max() < 1e-5
+        if not any(velocity):
+            assert np.abs(np.sum(v_out.numpy() * n_world, axis=1)).max() < 1e-5
+
+
+def test_steady_frame_of_the_moving_obstacles():
+    """`motion.steady_frame`: the frame in which every moving obstacle stands still once past
+    its ramp (projective dynamics' energy guard measures energy there), or None where there is
+    none."""
+    g = (0.0, -9.81, 0.0)
+    spin_y = Motion(angular_velocity=(0.0, 2.0, 0.0), start=1.0, ramp=0.5)
+    a = Sphere(0.3, (0.0, 0.5, 0.0), motion=spin_y)
+    u, w, c = motion.steady_frame([a, Plane()], g)
+    assert np.allclose(u, 0) and np.allclose(w, [0, 2, 0]) and np.allclose(c, [0, 0.5, 0])
+    # a second sphere turning about the same vertical axis shares it; one beside it does not
+    above = Sphere(0.1, (0.0, 1.5, 0.0), motion=spin_y)
+    beside = Sphere(0.1, (0.4, 1.5, 0.0), motion=spin_y)
+    assert motion.steady_frame([a, above], g) is not None
+    assert motion.steady_frame([a, beside], g) is None
+    slide = Motion(linear_velocity=(0.3, 0.0, 0.0))
+    u, w, _ = motion.steady_frame([Box((0.1, 0.1, 0.1), (0, 0, 0), motion=slide)], g)
+    assert np.allclose(u, [0.3, 0, 0]) and not np.any(w)
+    assert motion.steady_frame([Plane()], g) is None  # nothing moves
+    tilted = Motion(angular_velocity=(2.0, 0.0, 0.0))  # gravity turns in its frame
+    assert motion.steady_frame([Sphere(0.3, (0, 0, 0), motion=tilted)], g) is None
+    both = Motion(linear_velocity=(0.3, 0.0, 0.0), angular_velocity=(0.0, 2.0, 0.0))
+    assert motion.steady_frame([Sphere(0.3, (0, 0, 0), motion=both)], g) is None
+    path = Motion(path=KeyframePath([0.0, 1.0], [(0, 0, 0), (1, 0, 0)]))
+    assert motion.steady_frame([Sphere(0.3, (0, 0, 0), motion=path)], g) is None
+    assert motion.steady_frame([a, Box((0.1, 0.1, 0.1), (0, 0, 0), motion=slide)], g) is None

@@ -248,6 +248,12 @@ class ObstacleContact:
         # 1 while no obstacle moved in the last posed step (`obstacle_poses_kernel`): a solver's
         # energy check may then compare the step's end with its start (device-side)
         self.still = wp.ones(1, dtype=int, device=d)
+        # the frame in which the moving obstacles stand still once past their ramps
+        # (`motion.steady_frame`, or None), and 1 while the last posed step ran in it
+        from .motion import steady_frame
+
+        self.frame = steady_frame(ordered, model.gravity)
+        self.steady = wp.zeros(1, dtype=int, device=d)
         self._analytic_reach = self.reaches[: len(self.analytic)] if self.analytic else None
         self._mesh_reach = self.reaches[len(self.analytic):] if self.meshes else None
         self._analytic_data = self._data[: len(self.analytic)] if self.analytic else None
@@ -507,10 +513,11 @@ class ObstacleContact:
             from .motion import obstacle_poses_kernel
 
             self.still.fill_(1)
+            self.steady.fill_(0 if self.frame is None else 1)
             launch(obstacle_poses_kernel, len(self.obstacles),
                    [self._data, self.key_times, self.key_offsets, self.key_rotations, time,
                     self.clock, dt, respond, self.poses, self.reaches, self._last_t1,
-                    self.still],
+                    self.still, self.steady],
                    device=self.device)
 
     def _far(self, x, x_start, respond, margin):

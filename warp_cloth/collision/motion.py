@@ -239,6 +239,46 @@ class Motion:
         return c, q / np.linalg.norm(q)
 
 
+def steady_frame(obstacles, gravity):
+    """The rigid frame in which every moving obstacle of ``obstacles`` stands still once its
+    ramp is over: ``(velocity, angular_velocity, centre)`` (float64 arrays), or None.
+
+    It exists when the moving obstacles share one steady motion without a keyframe path: a
+    translation at one velocity, or a turn at one angular velocity parallel to gravity about one
+    axis (their centres on it). In that frame the obstacles do no work: their normal forces
+    are workless and friction only takes relative motion out, so the cloth's energy seen from
+    it (`warp_cloth.diagnostics.frame_energy`: the relative kinetic energy, gravity, elastic,
+    and the centrifugal potential) must not rise. A turn about another axis (gravity would turn
+    in the frame and do work there), a translation and a turn together (an axis that moves),
+    or obstacles moving differently have no such frame: None."""
+    movers = [ob for ob in obstacles if ob.moving]
+    if not movers:
+        return None
+    g = np.asarray(gravity, dtype=np.float64).reshape(3)
+    first = movers[0].motion
+    u = np.asarray(first.linear_velocity, dtype=np.float64)
+    w = np.asarray(first.angular_velocity, dtype=np.float64)
+    c = np.asarray(movers[0].pose(0.0)[0], dtype=np.float64)
+    if np.any(u) and np.any(w):
+        return None
+    if np.any(w) and np.linalg.norm(np.cross(w, g)) > 1e-9 * np.linalg.norm(w) * max(
+            np.linalg.norm(g), 1e-30):
+        return None
+    axis = w / np.linalg.norm(w) if np.any(w) else None
+    for ob in movers:
+        m = ob.motion
+        if m.path is not None:
+            return None
+        if not (np.array_equal(np.asarray(m.linear_velocity, dtype=np.float64), u)
+                and np.array_equal(np.asarray(m.angular_velocity, dtype=np.float64), w)):
+            return None
+        if axis is not None:  # turning about one axis: the centres on it
+            off = np.asarray(ob.pose(0.0)[0], dtype=np.float64) - c
+            if np.linalg.norm(np.cross(off, axis)) > 1e-9 * max(1.0, np.linalg.norm(off)):
+                return None
+    return u, w, c
+
+
 # ---------------------------------------------------------------- device data and pose
 @wp.struct
 class ObstacleData:
@@ -380,6 +420,7 @@ def obstacle_poses_kernel(
     reach: wp.array(dtype=ObstacleReach),
     last_t1: wp.array(dtype=wp.float64),
     still: wp.array(dtype=int),
+    steady: wp.array(dtype=int),
 ):
     """Poses of every obstacle at the start and end of the step, once per step (one thread per
     obstacle): ``poses[5k + 0..4] = T(t0), T(t1), T(t0)^-1, T(t1)^-1`` and the world direction
@@ -387,7 +428,10 @@ def obstacle_poses_kernel(
     for the far test. ``advance_clock`` (``apply``) also records the step's end time, so the next
     ``apply`` knows whether it starts where this one ended (``reach[k].fresh``). ``still[0]``
     (set to 1 before the launch) is cleared when some obstacle's pose differs between the
-    step's start and end: an obstacle that stands still this step does no work on the cloth."""
+    step's start and end: an obstacle that stands still this step does no work on the cloth.
+    ``steady[0]`` (set to 1 before the launch when the obstacles have a `steady_frame`) is
+    cleared when some moving obstacle is not yet past its ramp at the step's start: then the
+    step does not run in that frame's steady motion."""
     k = wp.tid()
     ob = obstacles[k]
     t0 = time[0]
@@ -405,6 +449,8 @@ def obstacle_poses_kernel(
     dq = wp.vec4(q1[0] - q0[0], q1[1] - q0[1], q1[2] - q0[2], q1[3] - q0[3])
     if wp.length_sq(p1 - p0) + wp.length_sq(dq) > 0.0:
         still[0] = 0
+    if ob.moving != 0 and (ob.key_count > 0 or t0 < ob.start + ob.ramp):
+        steady[0] = 0
     poses[5 * k + 2] = wp.transform_inverse(T0)
     poses[5 * k + 3] = wp.transform_inverse(T1)
     poses[5 * k + 4] = wp.transform(wp.transform_vector(T1, wp.vec3(0.0, 1.0, 0.0)), wp.quat_identity())

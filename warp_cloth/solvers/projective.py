@@ -200,7 +200,7 @@ def pd_converged_kernel(res: wp.array(dtype=float), tolerance: float,
 def pd_more_kernel(res: wp.array(dtype=float), threshold: float, limit: int,
                    flag: wp.array(dtype=wp.int32), counters: wp.array(dtype=wp.int32),
                    energy: wp.array(dtype=wp.float64), eps: float, report: float, guard: int,
-                   still: wp.array(dtype=int)):
+                   still: wp.array(dtype=int), steady: wp.array(dtype=int)):
     """After an evaluation of the contact iterations: another one runs (``flag[0] = 1``) while
     the residual ``res[0]`` is above ``threshold``, or (``guard``) the energy at the iterate
     ``energy[1]`` exceeds the step's start ``energy[0]`` by more than ``eps``, and fewer than
@@ -208,12 +208,13 @@ def pd_more_kernel(res: wp.array(dtype=float), threshold: float, limit: int,
     all steps, ``counters[2]``: steps that stopped at ``limit`` still above the residual,
     ``counters[3]``: steps that stopped there still gaining more than ``report``); clears
     ``res[0]``. With moving obstacles, the energy counts only in steps where none moved
-    (``still[0]``)."""
+    (``still[0]``) or where they move in their steady motion (``steady[0]``: the energies are
+    then the frame's that moves with them, `pd_energy_kernel`)."""
     r = res[0]
     res[0] = 0.0
     gain = guard != 0 and energy[1] - energy[0] > wp.float64(eps)
     if still.shape[0] > 0:
-        if still[0] == 0:
+        if still[0] == 0 and steady[0] == 0:
             gain = False
     more = int(0)
     if r > threshold or gain:
@@ -232,13 +233,24 @@ def pd_more_kernel(res: wp.array(dtype=float), threshold: float, limit: int,
 @wp.kernel
 def pd_energy_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
                      mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float),
-                     gravity: wp.vec3, out: wp.array(dtype=wp.float64)):
-    """Kinetic energy and gravity's potential of the free vertices into ``out[0]`` (float64)."""
+                     gravity: wp.vec3, out: wp.array(dtype=wp.float64),
+                     frame_u: wp.vec3, frame_w: wp.vec3, frame_c: wp.vec3,
+                     steady: wp.array(dtype=int)):
+    """Kinetic energy and gravity's potential of the free vertices into ``out[0]`` (float64);
+    while ``steady[0]`` (the moving obstacles in their steady motion, `motion.steady_frame`)
+    seen from the frame that moves with them: ``1/2 m |v - u - w x r|^2 - 1/2 m |w x r|^2``
+    (``r = x - c``; the relative kinetic energy and the centrifugal potential), in which
+    they do no work."""
     i = wp.tid()
     if inv_mass[i] > 0.0:
         vi = v[i]
-        wp.atomic_add(out, 0, wp.float64(0.5 * mass[i] * wp.dot(vi, vi)
-                                          - mass[i] * wp.dot(gravity, x[i])))
+        ke = 0.5 * mass[i] * wp.dot(vi, vi)
+        if steady.shape[0] > 0:
+            if steady[0] != 0:
+                rot = wp.cross(frame_w, x[i] - frame_c)
+                rel = vi - frame_u - rot
+                ke = 0.5 * mass[i] * (wp.dot(rel, rel) - wp.dot(rot, rot))
+        wp.atomic_add(out, 0, wp.float64(ke - mass[i] * wp.dot(gravity, x[i])))
 
 
 @wp.kernel
@@ -784,7 +796,7 @@ class ProjectiveDynamics(Solver):
         decay = math.exp(-m.damping * dt)
         guard = cc is not None and self.contact_iterations > 0 and self._energy_guard()
         if guard:  # the energy at the step's start (x0, the start velocity)
-            self._energy(self.x0, state.v, 0)
+            self._energy(self.x0, state.v, 0, cc)
         K = self.iterations
         for k in range(K):
             if m.num_springs:
@@ -862,14 +874,28 @@ class ProjectiveDynamics(Solver):
             return contact.still
         return self._no_int
 
-    def _energy(self, x, v, slot: int) -> None:
+    def _steady(self, cc):
+        """``(flag, u, w, c)``: the device flag 'the moving obstacles run in their steady
+        frame this step' (`ObstacleContact.steady`) and that frame (`motion.steady_frame`); an
+        empty flag (and zeros) when they have none or nothing moves."""
+        contact = getattr(cc.stage, "contact", None) if cc is not None else None
+        zero = wp.vec3(0.0, 0.0, 0.0)
+        if contact is not None and contact.moving:  # (``steady`` stays 0 without a frame)
+            if contact.frame is None:
+                return contact.steady, zero, zero, zero
+            u, w, c = contact.frame
+            return contact.steady, wp.vec3(*u), wp.vec3(*w), wp.vec3(*c)
+        return self._no_int, zero, zero, zero
+
+    def _energy(self, x, v, slot: int, cc=None) -> None:
         """Kinetic, gravity and elastic energy at ``x``, ``v`` into ``_e64[slot]`` (float64
         sums; the other force terms' energy in float32)."""
         m, d = self.model, self.device
         out = self._e_views[slot]
         out.zero_()
+        flag, u, w, c = self._steady(cc)
         launch(pd_energy_kernel, m.num_vertices,
-               [x, v, m.mass, m.inv_mass, wp.vec3(*m.gravity), out], device=d)
+               [x, v, m.mass, m.inv_mass, wp.vec3(*m.gravity), out, u, w, c, flag], device=d)
         if m.num_springs:
             launch(spring_energy64_kernel, m.num_springs,
                    [x, m.spring_indices, m.spring_rest_length, m.spring_k, out], device=d)
@@ -883,7 +909,7 @@ class ProjectiveDynamics(Solver):
         and whether another contact iteration runs (`pd_more_kernel`)."""
         m, d, A, K = self.model, self.device, self.operator, self.iterations
         if guard:  # the energy at the iterate (its velocity: the last update set it)
-            self._energy(state.x, state.v, 1)
+            self._energy(state.x, state.v, 1, cc)
         if m.num_springs:
             launch(pd_local_kernel, m.num_springs,
                    [state.x, m.spring_indices, m.spring_rest_length, m.spring_k, self.d,
@@ -901,7 +927,7 @@ class ProjectiveDynamics(Solver):
                                    self.contact_iterations, self._more_flag, self._more,
                                    self._e64, self._energy_eps, self._energy_report,
                                    int(guard),
-                                   self._still(cc)],
+                                   self._still(cc), self._steady(cc)[0]],
                device=d)
 
     def _contact_iteration(self, state, dt, cc, guard=False):
