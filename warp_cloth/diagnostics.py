@@ -75,7 +75,9 @@ class Meter:
     def __init__(self, model):
         self.model = model
         self.out = wp.zeros(5, dtype=wp.float32, device=model.device)
-        self.sums = wp.zeros(2, dtype=wp.float64, device=model.device)
+        # [kinetic, gravity's potential, the springs' energy] in float64
+        self.sums = wp.zeros(3, dtype=wp.float64, device=model.device)
+        self._springs64 = self.sums[2:3]
         self._elastic = self.out[4:5]
 
     def __call__(self, state, energy: bool = True) -> Measure:
@@ -92,10 +94,13 @@ class Meter:
         finite = h[0] == 0
         if energy and finite:
             for term in m.force_terms:
-                term.energy(state.x, self._elastic)
+                if hasattr(term, "energy64"):  # the springs: float64 (stiff ones round in float32)
+                    term.energy64(state.x, self._springs64)
+                else:
+                    term.energy(state.x, self._elastic)
             h = out.numpy()
-        k, g = (float(v) for v in self.sums.numpy())
-        return Measure(bool(finite), k, g, float(h[4]) if energy else float("nan"),
+        k, g, springs = (float(v) for v in self.sums.numpy())
+        return Measure(bool(finite), k, g, float(h[4]) + springs if energy else float("nan"),
                        float(h[3]) if finite else float("nan"))
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..forces.springs import spring_energy64_kernel, spring_stretch64  # noqa: F401 (shared here)
+
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 
@@ -48,26 +50,6 @@ def move_pins_kernel(
 @wp.kernel
 def advance_time_kernel(time: wp.array(dtype=wp.float64), dt: float):
     time[0] = time[0] + wp.float64(dt)
-
-
-@wp.func
-def spring_stretch64(xi: wp.vec3, xj: wp.vec3, rest: float):
-    """``|x_i - x_j| - L`` in float64 from the float32 positions (exact for the positions as
-    stored). In float32 the length alone rounds by about 1e-7 L: at k = 1e6 N/m and L = 3 cm
-    that is a spurious force of 2e-3 N, a 32 x 32 sheet vertex's weight, and at 1e9 N/m a
-    thousand times it, so Newton's gradient and the line search's energies were noise."""
-    return wp.length(wp.vec3d(xi) - wp.vec3d(xj)) - wp.float64(rest)
-
-
-@wp.kernel
-def spring_energy64_kernel(x: wp.array(dtype=wp.vec3), springs: wp.array2d(dtype=wp.int32),
-                           rest: wp.array(dtype=float), stiffness: wp.array(dtype=float),
-                           out: wp.array(dtype=wp.float64)):
-    """``sum_e k_e / 2 (|x_i - x_j| - L_e)^2`` added to ``out[0]`` in float64 (the energy checks
-    of implicit Euler and projective dynamics: float32 sums round at their tolerance)."""
-    e = wp.tid()
-    s = spring_stretch64(x[springs[e, 0]], x[springs[e, 1]], rest[e])
-    wp.atomic_add(out, 0, wp.float64(0.5) * wp.float64(stiffness[e]) * s * s)
 
 
 @wp.kernel
