@@ -87,7 +87,7 @@ its cap at the float32 floor, and the line search, when all four steps raised F,
 bad one (F 1.4 -> 25 J in one iteration); with Jacobi and Chebyshev inner solves the sheet
 gained 20 and 165 J. Now (1) a line search whose four steps all raise F tries steps 16 times
 shorter and else moves nothing (``stats["ls_rejected"]``); (2) a step that reaches its Newton
-cap, or stalls with a Jacobi-type inner solver, while its energy rose by more than 1e-5 of
+cap, or stalls with a Jacobi-type inner solver, while its energy rose by more than `GUARD_EPS` (1e-6) of
 ``M |g|`` x 1 m goes on for up to ``2 newton_iterations`` more iterations until the rise is gone,
 checked after every quarter of ``newton_iterations`` (whole rounds iterated up to 6 times more
 than needed: 23 % fewer Newton iterations on the 32 x 32 fold with self-collision)
@@ -393,6 +393,14 @@ def objective_kernel(
         d = x[i] - x_hat[i]
         wp.atomic_add(out, 0, wp.float64(0.5 * scale * mass[i] * wp.dot(d, d) - wp.dot(f_ext[i], x[i])))
 
+
+#: the energy rise (a fraction of ``M |g|`` times 1 m) the energy guard tolerates in a step. It
+#: was 1e-5, for float32 rounding of a stiff spring's energy; but the guard sums in float64 (the
+#: stretch from the stored positions, `spring_stretch64`), and what rounded at that level was the
+#: meter's float32 sum: the 32 x 32 sheet at k = 1e9 N/m, one step at 60 fps, rose by 7.1e-6 J
+#: (4.8e-6 M g) in a frame at 1e-5 and never at 1e-6, with the same fall and time
+#: (`warp-cloth bench stability --strict`). Projective dynamics' `ENERGY_EPS` is the same.
+GUARD_EPS = 1.0e-6
 
 #: the energy guard adds up to this many times ``newton_iterations`` to a step that reached its
 #: cap above its tolerance while gaining energy (in rounds of a quarter of them, the gain
@@ -1295,11 +1303,11 @@ class ImplicitEuler(Solver):
 
     @property
     def _guard_eps(self) -> float:
-        """Energy rise the guard tolerates in a step: 1e-5 of ``M |g|`` times 1 m (float32
-        positions round a stiff spring's energy at about this level), at least 1e-9 J."""
+        """Energy rise the guard tolerates in a step: `GUARD_EPS` of ``M |g|`` times 1 m,
+        at least 1e-9 J."""
         if not hasattr(self, "_eps_cache"):
             mg = float(np.sum(self.model.masses)) * float(np.linalg.norm(self.model.gravity))
-            self._eps_cache = max(1.0e-5 * mg, 1.0e-9)
+            self._eps_cache = max(GUARD_EPS * mg, 1.0e-9)
         return self._eps_cache
 
     def _energy_gain(self, x, v, dt: float) -> float:
