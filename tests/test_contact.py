@@ -928,9 +928,7 @@ def test_surface_velocity_of_a_turning_obstacle_is_tangent_to_it():
         assert np.abs(np.sum(rel * n_world, axis=1)).max() < 1e-5
         if not any(velocity):
             assert np.abs(np.sum(v_out.numpy() * n_world, axis=1)).max() < 1e-5
-    # a still obstacle turned at rest has no surface velocity at all, exactly (the features'
-    # friction took the chord there: a point's float32 round trip out of the pose and back,
-    # over the step)
+    # a still obstacle turned at rest has no surface velocity at all, exactly
     box = Box((0.2, 0.1, 0.3), (0.1, 0.2, 0.3), rotation=quat_from_axis_angle((1, 2, 3), 0.7))
     poses = wp.array([_pose(box, 0.0), _pose(box, 0.0)], dtype=wp.transform)
     vs = wp.zeros(16, dtype=wp.vec3)

@@ -60,7 +60,6 @@ from .broadphase import ClothBroadPhase, cloth_bounds_kernel
 from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, f3,
                        point_triangle_closest, segment_segment_closest, vt_impact)
 from .motion import KIND_BOX, KIND_SPHERE
-from .response import pose_velocity
 from .record import (KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, entry_gap,
                      record_append, record_threads)
 
@@ -657,9 +656,9 @@ def friction_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3), v: wp.array(
     """Coulomb friction of the entries in contact (gap at most ``slack``, friction ``mu > 0``,
     not `pin_held`), before the response's rounds (Bridson et al. 2002, as the vertex
     contacts' `response.impulse`): the entry's point's velocity relative to the obstacle's
-    surface there, ``v_r = sum_j w_j v_j - W v_s`` (``W = sum_j w_j``; ``v_s`` the velocity
-    of the obstacle's material point there at the step's end, `response.pose_velocity`: a
-    spinning sphere's surface), loses its tangential part ``v_T`` up to ``mu dv_N`` (all of it: static). The
+    surface there, ``v_r = sum_j w_j v_j - W v_s`` (``W = sum_j w_j``; ``v_s`` the velocity the
+    obstacle's motion over the step gives that point, from its poses: a spinning sphere's
+    surface), loses its tangential part ``v_T`` up to ``mu dv_N`` (all of it: static). The
     normal impulse ``dv_N`` (a velocity of the point) is the larger of the approach the
     response's rounds take out (``-v_r . n``: explicit Euler, whose step lets the point fall
     into the feature) and what contact pushed the point by in the step, ``sum_j w_j n .
@@ -700,9 +699,10 @@ def friction_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3), v: wp.array(
         vs = wp.vec3(0.0)
         src = rec.source[e]
         if src >= 0 and wp.abs(total) > 1.0e-6:
-            pc = c / total  # the cloth point, as a material point of the obstacle
+            pc = c / total  # the cloth point, carried back through the obstacle's motion
             local = wp.transform_point(poses[5 * src + 3], pc)
-            vs = pose_velocity(poses[5 * src + 0], poses[5 * src + 1], local, dt)
+            p0 = wp.transform_point(poses[5 * src + 0], local)
+            vs = (pc - p0) / dt
         vr = vc - total * vs
         vn = wp.dot(vr, n)
         vt = vr - vn * n
