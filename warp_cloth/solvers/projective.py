@@ -876,8 +876,9 @@ class ProjectiveDynamics(Solver):
 
     def _steady(self, cc):
         """``(flag, u, w, c)``: the device flag 'the moving obstacles run in their steady
-        frame this step' (`ObstacleContact.steady`) and that frame (`motion.steady_frame`); an
-        empty flag (and zeros) when they have none or nothing moves."""
+        frame this step' (`ObstacleContact.steady`) and that frame (`motion.steady_frame`): a
+        flag that stays 0 (and zeros) when they have no such frame, an empty one when no
+        obstacle moves (as `_still`)."""
         contact = getattr(cc.stage, "contact", None) if cc is not None else None
         zero = wp.vec3(0.0, 0.0, 0.0)
         if contact is not None and contact.moving:  # (``steady`` stays 0 without a frame)
