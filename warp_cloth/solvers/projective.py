@@ -527,8 +527,10 @@ class ProjectiveDynamics(Solver):
             ``max_i dt^2 |grad F_i| / m_i`` is above ``contact_residual``, or while the step's
             energy (kinetic, gravity, springs, bending; float64 sums) is above its start by
             more than `ENERGY_EPS` ``M |g|`` x 1 m (not with scripted pins or wind, which do
-            work, nor in a step where an obstacle moves: `ObstacleContact.still`; a device-side
-            loop, `wp.capture_while`: capturable). The
+            work, nor in a step where an obstacle moves other than in its steady motion:
+            `ObstacleContact.still`, and `ObstacleContact.steady`, where the energy is the one
+            seen from the obstacles' `motion.steady_frame`; a device-side loop,
+            `wp.capture_while`: capturable). The
             energy criterion took the drape's largest one-frame rise from 8.8e-4 J to 3e-5 J
             (with the contact sag of `contact_coupling`; none since `ENERGY_EPS` is 1e-6);
             steps that end their iterations still gaining more than `ENERGY_REPORT` are
