@@ -1582,3 +1582,44 @@ def test_a_path_through_the_cloth_is_not_resolved_by_its_end_constraints():
     sc.resolve(state, wp.array(data["x0"], dtype=wp.vec3, device=m.device), float(data["dt"]))
     assert self_crossings(state.x.numpy(), tris, edges) == 0
     assert sc.stats["self_zones"] > 0 and sc.stats["self_fallback_all"] == 0
+
+
+def test_incremental_rounds_detect_what_full_rounds_detect():
+    """After a step's first round only the pairs with a vertex the last projection moved are
+    detected again and the other entries are kept (`SelfCollision._round_incremental`): every
+    round's entries are exactly those of a full detection, on a crumpled sheet whose random
+    path needs several rounds, and the response ends in the same positions."""
+    import warp as wp
+
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    model, rng = _crumpled(res=8, spread=0.04)
+    h = 0.03
+    x0 = model.mesh.vertices
+    x1 = x0 + rng.normal(0, 0.03, x0.shape)
+    runs = {}
+    for incremental in (True, False):
+        sc = SelfCollision(model, h, rounds=6, iterations=2, incremental=incremental)
+        rounds, moved = [], []
+        project = sc._project
+
+        def spy(state, dt, sc=sc, project=project, rounds=rounds, moved=moved):
+            k = int(sc.record.count.numpy()[0])
+            rounds.append(sorted((int(kd), *map(int, v)) for kd, v in
+                                 zip(sc.record.kind.numpy()[:k], sc.record.vertex.numpy()[:k])))
+            if incremental:
+                moved.append(int(sc._incremental.numpy()[0]) * int(sc._moved_round.numpy().sum()))
+            project(state, dt)
+
+        sc._project = spy
+        state = model.state()
+        state.x.assign(x1)
+        sc.resolve(state, wp.array(x0, dtype=wp.vec3, device="cpu"), 1.0 / 60.0)
+        runs[incremental] = (rounds, state.x.numpy(), moved)
+    (inc, x_inc, moved), (full, x_full, _) = runs[True], runs[False]
+    assert len(inc) >= 4 and len(inc) == len(full)
+    assert 0 < min(moved[1:]) and max(moved[1:]) < len(x0)  # partial re-detections ran
+    assert min(len(r) for r in full) >= 3  # contacts left in every round
+    for a, b in zip(inc, full):
+        assert a == b
+    np.testing.assert_allclose(x_inc, x_full, atol=1e-6)

@@ -171,6 +171,19 @@ class ClothBroadPhase:
             self.tri_grid.reserve(len(tris))
             self.edge_grid.reserve(len(edges))
 
+    def build_vertex_bvh(self, x, pad: float) -> None:
+        """The vertices' BVH (``vertex_bvh``) built now from positions ``x`` (boxes inflated by
+        ``pad``), if it is not yet: an allocation, so not inside a recorded graph; `update`
+        refits it. The triangles' and edges' BVHs are left to `update`'s first call."""
+        if self.method != "bvh" or self.vertex_bvh is not None:
+            return
+        n = len(x)
+        self.vlowers = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        self.vuppers = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        launch(vertex_bounds_kernel, n, [x, x, float(pad), self.vlowers, self.vuppers],
+               device=self.device)
+        self.vertex_bvh = wp.Bvh(self.vlowers, self.vuppers)
+
     def update(self, x0, x1, pad: float, vertices: bool = False) -> None:
         """Boxes of the paths ``x0 -> x1`` inflated by ``pad``, and the BVHs refitted;
         ``vertices``: also the vertices' boxes and their BVH ``vertex_bvh`` (BVH method only)."""

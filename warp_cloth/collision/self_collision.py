@@ -727,6 +727,69 @@ def zone_pass_kernel(rec: ContactRecord, flags: wp.array(dtype=int), passes: int
         flags[2] = 0
 
 
+@wp.func
+def record_copy(src: ContactRecord, i: int, dst: ContactRecord, j: int):
+    """Entry ``i`` of ``src`` written as entry ``j`` of ``dst``."""
+    dst.vertex[j] = src.vertex[i]
+    dst.weight[j] = src.weight[i]
+    dst.normal[j] = src.normal[i]
+    dst.offset[j] = src.offset[i]
+    dst.ref[j] = src.ref[i]
+    dst.friction[j] = src.friction[i]
+    dst.restitution[j] = src.restitution[i]
+    dst.source[j] = src.source[i]
+    dst.kind[j] = src.kind[i]
+
+
+@wp.kernel
+def round_begin_kernel(x: wp.array(dtype=wp.vec3), x_round: wp.array(dtype=wp.vec3),
+                       rec: ContactRecord, flags: wp.array(dtype=int),
+                       moved: wp.array(dtype=int), incremental: wp.array(dtype=int)):
+    """Before a round: ``moved[i]`` = 1 where the last round's projection (or the obstacles'
+    push after it) changed vertex ``i`` (``x_round``: the positions it started from), and
+    ``incremental[0]`` = 1 when this is not the step's first round and the last detection
+    dropped nothing (`SelfCollision._round`)."""
+    i = wp.tid()
+    a = x[i]
+    b = x_round[i]
+    moved[i] = 0
+    if a[0] != b[0] or a[1] != b[1] or a[2] != b[2]:
+        moved[i] = 1
+    if i == 0:
+        incremental[0] = 0
+        if flags[0] >= 1 and rec.overflow[0] == 0:
+            incremental[0] = 1
+
+
+@wp.kernel
+def record_stash_kernel(rec: ContactRecord, stash: ContactRecord, num_threads: int):
+    """The record's entries copied into ``stash`` (with their count)."""
+    t = wp.tid()
+    count = wp.min(rec.count[0], rec.vertex.shape[0])
+    if t == 0:
+        stash.count[0] = count
+    for e in range(t, count, num_threads):
+        record_copy(rec, e, stash, e)
+
+
+@wp.kernel
+def record_keep_kernel(stash: ContactRecord, moved: wp.array(dtype=int), rec: ContactRecord,
+                       num_threads: int):
+    """The stashed entries none of whose vertices moved, appended to ``rec`` (emptied before):
+    their paths are the ones they were detected on, so detection would find them again."""
+    t = wp.tid()
+    for e in range(t, stash.count[0], num_threads):
+        vid = stash.vertex[e]
+        keep = True
+        for j in range(4):
+            if vid[j] >= 0:
+                if moved[vid[j]] != 0:
+                    keep = False
+        if keep:
+            k = wp.atomic_add(rec.count, 0, 1)
+            record_copy(stash, e, rec, k)
+
+
 @wp.kernel
 def step_begin_kernel(done: wp.array(dtype=int), violated: wp.array(dtype=int),
                       flags: wp.array(dtype=int), counters: wp.array(dtype=int)):
@@ -920,11 +983,15 @@ class SelfCollision:
             the cloth may move ``(clearance - 1.01) / 2`` thicknesses in a span (1.5 at the
             default) instead of the ``self_motion`` reach. <= 1.01: no allowances (the reach
             everywhere, every vertex queries).
+        incremental: after a step's first round, detect again only the pairs with a vertex
+            the last round's projection moved, and keep the other entries (their paths did not
+            change, so a detection would find them again; BVH broad phase). Default True;
+            False detects every pair in every round (the same contacts, for comparison).
     """
 
     def __init__(self, model, thickness: float, rounds: int = 4, iterations: int = 4,
                  capacity: int | None = None, broadphase: str = "bvh", zone_passes: int = 3,
-                 clearance: float = 4.0):
+                 clearance: float = 4.0, incremental: bool = True):
         self.model = model
         self.device = d = model.device
         self.thickness = float(thickness)
@@ -983,6 +1050,18 @@ class SelfCollision:
         self.clearance = c * self.thickness
         self._allowances = c > 1.01
         self.allowances = False  # in use (`plan`)
+        # incremental rounds (`_round`): the positions a round's projection started from, the
+        # vertices it moved, the device flag and a second record for the kept entries
+        self._incremental = None
+        if incremental and self.broad.method == "bvh":
+            self._x_round = wp.zeros(n, dtype=wp.vec3, device=d)
+            self._moved_round = wp.zeros(n, dtype=int, device=d)
+            self._incremental = wp.zeros(1, dtype=int, device=d)
+            self._stash = make_record(self.capacity, d)
+            # the vertices' BVH built now, not inside a recorded graph (`_round_incremental`
+            # refits it; the others are built by the first step's detection, as before)
+            x = wp.array(model.mesh.vertices, dtype=wp.vec3, device=d)
+            self.broad.build_vertex_bvh(x, 0.5 * self.thickness)
 
     def detect(self, x0, x1, gap: float, record, done=None) -> None:
         """Self-contacts on the paths ``x0 -> x1`` that come within ``gap`` appended to
@@ -1292,9 +1371,22 @@ class SelfCollision:
     frame_frozen = False
 
     def _round(self, state, x_start, dt):
-        self.record.count.zero_()
-        self.record.overflow.zero_()
-        self.detect(x_start, state.x, self._gap, self.record, self.done)
+        if self._incremental is None:
+            self.record.count.zero_()
+            self.record.overflow.zero_()
+            self.detect(x_start, state.x, self._gap, self.record, self.done)
+        else:
+            # after the first round only the vertices the last projection moved have new
+            # paths: the entries of the others are kept and only pairs with a moved vertex are
+            # detected again (`_round_incremental`); a full detection after one that dropped
+            # entries. A device-side choice (`wp.capture_if`): capturable
+            launch(round_begin_kernel, self.model.num_vertices,
+                   [state.x, self._x_round, self.record, self._flags, self._moved_round,
+                    self._incremental], device=self.device)
+            self.record.overflow.zero_()
+            wp.capture_if(self._incremental, on_true=self._round_incremental,
+                          on_false=self._round_full, x_start=x_start, x=state.x)
+            wp.copy(self._x_round, state.x)
         self._project(state, dt)
         if self._obstacles is not None:
             # the projection splits a pair's correction between its layers and can push a
@@ -1307,6 +1399,35 @@ class SelfCollision:
                                                 self.threads], device=self.device)
         launch(round_end_kernel, 1, [self.record, self.violated, self.done, self.counters,
                                      self._flags, self.rounds], device=self.device)
+
+    def _round_full(self, x_start, x):
+        self.record.count.zero_()
+        self.detect(x_start, x, self._gap, self.record, self.done)
+
+    def _round_incremental(self, x_start, x):
+        d, b, m = self.device, self.broad, self.model
+        launch(record_stash_kernel, self.threads, [self.record, self._stash, self.threads],
+               device=d)
+        self.record.count.zero_()
+        launch(record_keep_kernel, self.threads, [self._stash, self._moved_round, self.record,
+                                                  self.threads], device=d)
+        gap = self._gap
+        b.update(x_start, x, 0.5 * float(gap), vertices=True)
+        common = [x_start, x]
+        active = self._moved_round
+        pairs = self._no_pairs
+        if b.num_tris:
+            launch(self_vt_bvh_kernel, m.num_vertices,
+                   [b.tri_bvh.id, *common, b.tris, gap, self.thickness, m.inv_mass,
+                    self.rest, self.done, active, self.record, pairs, self._npairs], device=d)
+            launch(self_tv_bvh_kernel, b.num_tris,
+                   [b.vertex_bvh.id, b.lowers, b.uppers, *common, b.tris, gap,
+                    self.thickness, m.inv_mass, self.rest, self.done, active, self.record,
+                    pairs, self._npairs], device=d)
+        if b.num_edges:
+            launch(self_ee_bvh_kernel, b.num_edges,
+                   [b.edge_bvh.id, *common, b.edges, gap, self.thickness, m.inv_mass,
+                    self.rest, self.done, active, self.record, pairs, self._npairs], device=d)
 
     def _fallback(self, state, x_start, dt, steps):
         # what is left after the last round: paths that still come within 5 % of the thickness
@@ -1405,6 +1526,8 @@ class SelfCollision:
         self.capacity = int(capacity)
         self.record = make_record(self.capacity, self.device)
         self.threads = record_threads(self.capacity, self.device)
+        if self._incremental is not None:
+            self._stash = make_record(self.capacity, self.device)
 
     @property
     def stats(self) -> dict:
