@@ -1584,11 +1584,20 @@ def test_a_path_through_the_cloth_is_not_resolved_by_its_end_constraints():
     assert sc.stats["self_zones"] > 0 and sc.stats["self_fallback_all"] == 0
 
 
-def test_incremental_rounds_detect_what_full_rounds_detect():
+def _entries(sc):
+    k = int(sc.record.count.numpy()[0])
+    return sorted((int(kd), *map(int, v)) for kd, v in
+                  zip(sc.record.kind.numpy()[:k], sc.record.vertex.numpy()[:k]))
+
+
+@pytest.mark.parametrize("rounds", [6, 1])
+def test_incremental_rounds_detect_what_full_rounds_detect(rounds):
     """After a step's first round only the pairs with a vertex the last projection moved are
-    detected again and the other entries are kept (`SelfCollision._round_incremental`): every
-    round's entries are exactly those of a full detection, on a crumpled sheet whose random
-    path needs several rounds, and the response ends in the same positions."""
+    detected again and the other entries are kept (`SelfCollision._round_incremental`); the
+    impact zones' first detection likewise, the kept entries tested again at the fail-safe gap
+    (`_zone_detect_incremental`): every round's and every zone pass's entries are exactly
+    those of a full detection, on a crumpled sheet whose random path needs several rounds (one
+    round: the zones), and the response ends in the same positions."""
     import warp as wp
 
     from warp_cloth.collision.self_collision import SelfCollision
@@ -1596,30 +1605,89 @@ def test_incremental_rounds_detect_what_full_rounds_detect():
     model, rng = _crumpled(res=8, spread=0.04)
     h = 0.03
     x0 = model.mesh.vertices
-    x1 = x0 + rng.normal(0, 0.03, x0.shape)
+    x1 = x0 + rng.normal(0, 0.03 if rounds > 1 else 0.08, x0.shape)
     runs = {}
     for incremental in (True, False):
-        sc = SelfCollision(model, h, rounds=6, iterations=2, incremental=incremental)
-        rounds, moved = [], []
-        project = sc._project
+        sc = SelfCollision(model, h, rounds=rounds, iterations=2, incremental=incremental)
+        rounds_seen, zones_seen, moved = [], [], []
+        project, zone_pass = sc._project, sc._zone_pass
 
-        def spy(state, dt, sc=sc, project=project, rounds=rounds, moved=moved):
-            k = int(sc.record.count.numpy()[0])
-            rounds.append(sorted((int(kd), *map(int, v)) for kd, v in
-                                 zip(sc.record.kind.numpy()[:k], sc.record.vertex.numpy()[:k])))
+        def spy(state, dt, sc=sc, project=project, seen=rounds_seen, moved=moved):
+            seen.append(_entries(sc))
             if incremental:
                 moved.append(int(sc._incremental.numpy()[0]) * int(sc._moved_round.numpy().sum()))
             project(state, dt)
 
-        sc._project = spy
+        def zspy(*a, sc=sc, zone_pass=zone_pass, seen=zones_seen, **k):
+            zone_pass(*a, **k)
+            seen.append(_entries(sc))
+
+        calls = []
+        zinc_detect = sc._zone_detect_incremental
+
+        def zinc_spy(*a, zinc_detect=zinc_detect, calls=calls, **k):
+            calls.append(1)
+            zinc_detect(*a, **k)
+
+        sc._project, sc._zone_pass, sc._zone_detect_incremental = spy, zspy, zinc_spy
         state = model.state()
         state.x.assign(x1)
         sc.resolve(state, wp.array(x0, dtype=wp.vec3, device="cpu"), 1.0 / 60.0)
-        runs[incremental] = (rounds, state.x.numpy(), moved)
-    (inc, x_inc, moved), (full, x_full, _) = runs[True], runs[False]
-    assert len(inc) >= 4 and len(inc) == len(full)
-    assert 0 < min(moved[1:]) and max(moved[1:]) < len(x0)  # partial re-detections ran
-    assert min(len(r) for r in full) >= 3  # contacts left in every round
-    for a, b in zip(inc, full):
+        runs[incremental] = (rounds_seen, zones_seen, state.x.numpy(), moved, sc.stats)
+        # the zones' first detection alone is incremental
+        assert len(calls) == (1 if incremental and zones_seen else 0)
+    (inc, zinc, x_inc, moved, st_inc), (full, zfull, x_full, _, st_full) = runs[True], runs[False]
+    assert len(inc) == len(full) and len(zinc) == len(zfull)
+    if rounds > 1:
+        assert len(inc) >= 4
+        assert 0 < min(moved[1:]) and max(moved[1:]) < len(x0)  # partial re-detections ran
+        assert min(len(r) for r in full) >= 3  # contacts left in every round
+    else:
+        assert len(zfull) >= 2 and len(zfull[0]) > 0 and st_full["self_zones"] > 0
+    for a, b in zip(inc + zinc, full + zfull):
         assert a == b
+    for key in ("self_contacts", "self_zones", "self_zone_vertices", "self_fallback_all"):
+        assert st_inc[key] == st_full[key], key
     np.testing.assert_allclose(x_inc, x_full, atol=1e-6)
+
+
+@pytest.mark.parametrize("marked", [0.0, 0.3])
+def test_zone_detection_from_the_last_round_entries_equals_a_full_one(marked):
+    """`_zone_detect_incremental`: the last round's entries whose vertices did not move, tested
+    again at the fail-safe gap, plus the pairs of the marked vertices, are exactly a full
+    detection at that gap on the same paths (kinds, vertices, normals, weights): a pair not
+    among the entries was farther than the round's gap. With no vertex marked, only the
+    retest; with 30 % marked, both halves."""
+    import warp as wp
+
+    from warp_cloth.collision.self_collision import FAILSAFE_GAP, SelfCollision
+
+    model, rng = _crumpled(res=8, spread=0.04)
+    h = 0.03
+    x0 = model.mesh.vertices
+    a0 = wp.array(x0, dtype=wp.vec3, device="cpu")
+    a1 = wp.array(x0 + rng.normal(0, 0.03, x0.shape), dtype=wp.vec3, device="cpu")
+    sc = SelfCollision(model, h)
+
+    def entries():
+        k = int(sc.record.count.numpy()[0])
+        r = sc.record
+        rows = sorted(zip(map(int, r.kind.numpy()[:k]), map(tuple, r.vertex.numpy()[:k].tolist()),
+                          map(tuple, r.normal.numpy()[:k].tolist()),
+                          map(tuple, r.weight.numpy()[:k].tolist()), r.offset.numpy()[:k]))
+        return rows
+
+    gap = FAILSAFE_GAP * h
+    sc.record.count.zero_()
+    sc.detect(a0, a1, h, sc.record)
+    at_h = entries()
+    sc._moved_round.assign((rng.random(len(x0)) < marked).astype(np.int32))
+    sc._zone_detect_incremental(a0, a1, gap)
+    inc = entries()
+    sc.record.count.zero_()
+    sc.detect(a0, a1, gap, sc.record)
+    full = entries()
+    assert 0 < len(full) < len(at_h)
+    assert [(k, v) for k, v, *_ in inc] == [(k, v) for k, v, *_ in full]
+    for a, b in zip(inc, full):
+        np.testing.assert_allclose(np.r_[a[2], a[3], a[4]], np.r_[b[2], b[3], b[4]], atol=1e-6)

@@ -211,6 +211,14 @@ def vt_pair(v: int, t: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.v
         if k < pairs.shape[0]:
             pairs[k] = wp.vec2i(v, t)
         return
+    vt_test(v, ia, ib, ic, x0, x1, gap, sep, rest, rec)
+
+
+@wp.func
+def vt_test(v: int, ia: int, ib: int, ic: int, x0: wp.array(dtype=wp.vec3),
+            x1: wp.array(dtype=wp.vec3), gap: float, sep: float, rest: wp.array(dtype=wp.vec4),
+            rec: ContactRecord):
+    """`vt_pair`'s continuous test of vertex ``v`` against the triangle ``ia ib ic``."""
     a0 = x0[v]
     a1 = x1[v]
     s, toi = ccd_vertex_triangle(d3(a0), d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(a1),
@@ -260,6 +268,14 @@ def ee_pair(e: int, f: int, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.v
         if k < pairs.shape[0]:
             pairs[k] = wp.vec2i(e, f)
         return
+    ee_test(ia, ib, ic, id, x0, x1, gap, sep, rest, rec)
+
+
+@wp.func
+def ee_test(ia: int, ib: int, ic: int, id: int, x0: wp.array(dtype=wp.vec3),
+            x1: wp.array(dtype=wp.vec3), gap: float, sep: float, rest: wp.array(dtype=wp.vec4),
+            rec: ContactRecord):
+    """`ee_pair`'s continuous test of the edges ``ia ib`` and ``ic id``."""
     s, toi = ccd_edge_edge(d3(x0[ia]), d3(x0[ib]), d3(x0[ic]), d3(x0[id]), d3(x1[ia]),
                            d3(x1[ib]), d3(x1[ic]), d3(x1[id]), wp.float64(gap), CCD_ITERATIONS)
     if s == CCD_MISS:
@@ -787,7 +803,32 @@ def record_keep_kernel(stash: ContactRecord, moved: wp.array(dtype=int), rec: Co
                     keep = False
         if keep:
             k = wp.atomic_add(rec.count, 0, 1)
-            record_copy(stash, e, rec, k)
+            if k < rec.vertex.shape[0]:  # (the stash holds at most the record's capacity)
+                record_copy(stash, e, rec, k)
+
+
+@wp.kernel
+def record_retest_kernel(stash: ContactRecord, moved: wp.array(dtype=int),
+                         x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                         gap: float, sep: float, rest: wp.array(dtype=wp.vec4),
+                         rec: ContactRecord, num_threads: int):
+    """The stashed entries none of whose vertices moved, tested again on the paths
+    ``x0 -> x1`` with the detection gap ``gap`` (`vt_test` / `ee_test`, as a detection would
+    test their pairs) and appended to ``rec`` where they hit."""
+    t = wp.tid()
+    for e in range(t, stash.count[0], num_threads):
+        vid = stash.vertex[e]
+        keep = True
+        for j in range(4):
+            if vid[j] >= 0:
+                if moved[vid[j]] != 0:
+                    keep = False
+        if not keep:
+            continue
+        if stash.kind[e] == KIND_VERTEX_TRIANGLE:
+            vt_test(vid[0], vid[1], vid[2], vid[3], x0, x1, gap, sep, rest, rec)
+        elif stash.kind[e] == KIND_EDGE_EDGE:
+            ee_test(vid[0], vid[1], vid[2], vid[3], x0, x1, gap, sep, rest, rec)
 
 
 @wp.kernel
@@ -1057,6 +1098,7 @@ class SelfCollision:
             self._x_round = wp.zeros(n, dtype=wp.vec3, device=d)
             self._moved_round = wp.zeros(n, dtype=int, device=d)
             self._incremental = wp.zeros(1, dtype=int, device=d)
+            self._zone_incremental = wp.zeros(1, dtype=int, device=d)
             self._stash = make_record(self.capacity, d)
             # the vertices' BVH built now, not inside a recorded graph (`_round_incremental`
             # refits it; the others are built by the first step's detection, as before)
@@ -1411,7 +1453,12 @@ class SelfCollision:
         self.record.count.zero_()
         launch(record_keep_kernel, self.threads, [self._stash, self._moved_round, self.record,
                                                   self.threads], device=d)
-        gap = self._gap
+        self._detect_moved(x_start, x, self._gap)
+
+    def _detect_moved(self, x_start, x, gap):
+        """The pairs with a vertex marked in ``_moved_round`` that come within ``gap`` on the
+        paths ``x_start -> x``, appended to the record."""
+        d, b, m = self.device, self.broad, self.model
         b.update(x_start, x, 0.5 * float(gap), vertices=True)
         common = [x_start, x]
         active = self._moved_round
@@ -1442,6 +1489,14 @@ class SelfCollision:
         # detection, not ``zone_passes + 1`` (recording the explicit hanging scene's frame
         # graph, 185 steps each with its fall-back: 7.1 s with the passes unrolled, 4.2 s)
         launch(zone_begin_kernel, 1, [self._zone_flags, self.zone_passes], device=d)
+        if self._incremental is not None:
+            # the first pass's detection as the rounds': only the pairs with a vertex the last
+            # projection moved are detected, the last round's other entries tested again at
+            # the fail-safe gap (a pair not among them was farther than the rounds' gap on
+            # this same path). Later passes follow rigid zone moves: full detections
+            launch(round_begin_kernel, m.num_vertices,
+                   [state.x, self._x_round, self.record, self._flags, self._moved_round,
+                    self._zone_incremental], device=d)
         wp.capture_while(self._zone_flags[1:2], self._zone_pass, state=state, x_start=x_start,
                          dt=dt, steps=steps, gap=gap)
         launch(revert_kernel, self.threads,
@@ -1449,12 +1504,30 @@ class SelfCollision:
                 self.threads], device=d)
 
     def _zone_pass(self, state, x_start, dt, steps, gap):
-        self.record.count.zero_()
-        self.detect(x_start, state.x, gap, self.record, self.done)
+        if self._incremental is None:
+            self._zone_detect_full(x_start, state.x, gap)
+        else:
+            wp.capture_if(self._zone_incremental, on_true=self._zone_detect_incremental,
+                          on_false=self._zone_detect_full, x_start=x_start, x=state.x, gap=gap)
+            self._zone_incremental.zero_()
         wp.capture_if(self._zone_flags[2:3], self._zone_move, state=state, x_start=x_start,
                       dt=dt, steps=steps)
         launch(zone_pass_kernel, 1, [self.record, self._zone_flags, self.zone_passes],
                device=self.device)
+
+    def _zone_detect_full(self, x_start, x, gap):
+        self.record.count.zero_()
+        self.detect(x_start, x, gap, self.record, self.done)
+
+    def _zone_detect_incremental(self, x_start, x, gap):
+        d = self.device
+        launch(record_stash_kernel, self.threads, [self.record, self._stash, self.threads],
+               device=d)
+        self.record.count.zero_()
+        launch(record_retest_kernel, self.threads,
+               [self._stash, self._moved_round, x_start, x, gap, self.thickness, self.rest,
+                self.record, self.threads], device=d)
+        self._detect_moved(x_start, x, gap)
 
     def _zone_move(self, state, x_start, dt, steps):
         self.zones.merge(self.record, self.threads)
