@@ -788,6 +788,17 @@ def record_stash_kernel(rec: ContactRecord, stash: ContactRecord, num_threads: i
         record_copy(rec, e, stash, e)
 
 
+@wp.func
+def none_moved(vid: wp.vec4i, moved: wp.array(dtype=int)):
+    """No vertex of an entry (``vid``, -1 unused) is marked in ``moved``."""
+    keep = True
+    for j in range(4):
+        if vid[j] >= 0:
+            if moved[vid[j]] != 0:
+                keep = False
+    return keep
+
+
 @wp.kernel
 def record_keep_kernel(stash: ContactRecord, moved: wp.array(dtype=int), rec: ContactRecord,
                        num_threads: int):
@@ -796,11 +807,7 @@ def record_keep_kernel(stash: ContactRecord, moved: wp.array(dtype=int), rec: Co
     t = wp.tid()
     for e in range(t, stash.count[0], num_threads):
         vid = stash.vertex[e]
-        keep = True
-        for j in range(4):
-            if vid[j] >= 0:
-                if moved[vid[j]] != 0:
-                    keep = False
+        keep = none_moved(vid, moved)
         if keep:
             k = wp.atomic_add(rec.count, 0, 1)
             if k < rec.vertex.shape[0]:  # (the stash holds at most the record's capacity)
@@ -818,11 +825,7 @@ def record_retest_kernel(stash: ContactRecord, moved: wp.array(dtype=int),
     t = wp.tid()
     for e in range(t, stash.count[0], num_threads):
         vid = stash.vertex[e]
-        keep = True
-        for j in range(4):
-            if vid[j] >= 0:
-                if moved[vid[j]] != 0:
-                    keep = False
+        keep = none_moved(vid, moved)
         if not keep:
             continue
         if stash.kind[e] == KIND_VERTEX_TRIANGLE:
