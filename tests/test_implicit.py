@@ -14,7 +14,8 @@ import warp as wp
 
 from warp_cloth.diagnostics import Meter
 from warp_cloth.forces.springs import spring_hessian_block
-from warp_cloth.model import PinPath
+from warp_cloth.mesh import TriMesh
+from warp_cloth.model import ClothModel, PinPath
 from warp_cloth.scenes import hanging_model
 from warp_cloth.solvers import implicit as imp
 from warp_cloth.solvers.explicit import SymplecticEuler
@@ -96,6 +97,32 @@ def test_one_newton_step_leaves_a_larger_residual():
     full.step(st, 1 / 30)
     # converged down to the float32 floor (about 1e-7 * 1 m * k dt^2/m = 4e-5 m here)
     assert full.stats["residual"] < 1e-4 < 1e-2 * res[1 / 30]
+
+
+@pytest.mark.parametrize("guess", ["inertial", "start"])
+def test_a_moving_sheet_translates_with_either_initial_guess(guess):
+    """With no force, a free sheet moving at v0 translates by v0 t and keeps v0, whatever
+    Newton starts from, and the energy guard leaves it alone. ``initial_guess="start"`` begins
+    at x0, where x - x_hat is -dt v0: the step took it as 0 (its exact increment sum started at
+    zero), so the sheet did not move while its velocity was kept, and under gravity and
+    contact gained energy every step (the drape 1.3 -> 6.7 J in 60 frames). And without
+    gravity the guard's floor (1e-9 J) was below the float32 rounding of the kinetic energy:
+    the translating sheet "gained" 4.7e-9 J of 0.033 J and the clamp halved its speed every
+    step (`GUARD_KE_REL`)."""
+    m = ClothModel(TriMesh.grid(4, 4, size=0.5), gravity=(0.0, 0.0, 0.0), device="cpu")
+    st = m.state()
+    v0 = np.array([1.0, 0.5, -0.25], dtype=np.float32)
+    st.v.assign(np.tile(v0, (m.num_vertices, 1)))
+    x0 = st.positions().copy()
+    s = ImplicitEuler(m, initial_guess=guess, tolerance=1e-7)
+    dt, n = 1.0 / 60.0, 12
+    for _ in range(n):
+        s.step(st, dt)
+    # Newton from x0 stops within its tolerance (1e-6 m without gravity: `step_tolerances`),
+    # about 1e-5 m/s of speed a step; from the inertial guess it starts on the solution
+    np.testing.assert_allclose(st.positions(), x0 + n * dt * v0, atol=2e-5)
+    np.testing.assert_allclose(st.velocities(), np.tile(v0, (m.num_vertices, 1)), atol=1e-3)
+    assert s.stats["energy_clamped_steps"] == 0
 
 
 def test_objective_decreases_every_newton_iteration():

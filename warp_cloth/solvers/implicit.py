@@ -165,7 +165,8 @@ def begin_step_kernel(
     x_hat: wp.array(dtype=wp.vec3),
     disp: wp.array(dtype=wp.vec3),
 ):
-    """x_prev = x0; x_hat = x0 + dt v0; f_ext += m g; x^(0) = x_hat + dt^2 f_ext / m (inertial).
+    """x_prev = x0; x_hat = x0 + dt v0; f_ext += m g; x^(0) = x_hat + dt^2 f_ext / m (inertial)
+    or x0 (``inertial`` 0).
 
     ``disp`` accumulates x - x_hat exactly (as a sum of increments, not a difference of rounded
     positions), so the end-of-step velocity keeps full float32 precision at small dt."""
@@ -183,6 +184,8 @@ def begin_step_kernel(
             d0 = (dt * dt * w) * fe
             x[i] = xh + d0
             disp[i] = d0
+        else:  # the guess is x0: x - x_hat = x0 - x_hat (it was left 0, as if x were x_hat)
+            disp[i] = xi - xh
 
 
 @wp.kernel
@@ -401,6 +404,11 @@ def objective_kernel(
 #: (4.8e-6 M g) in a frame at 1e-5 and never at 1e-6, with the same fall and time
 #: (`warp-cloth bench stability --strict`). Projective dynamics' `ENERGY_EPS` is the same.
 GUARD_EPS = 1.0e-6
+#: ... and at least this fraction of the step's starting kinetic energy: float32 velocities
+#: round the kinetic energy by about 1e-7 of itself, which the 1e-9 J floor of a cloth without
+#: gravity did not cover (a free sheet translating at 1.1 m/s "gained" 4.7e-9 J of 0.033 J in a
+#: step, and the clamp halved its speed every step)
+GUARD_KE_REL = 1.0e-6
 
 #: the energy guard adds up to this many times ``newton_iterations`` to a step that reached its
 #: cap above its tolerance while gaining energy (in rounds of a quarter of them, the gain
@@ -514,7 +522,8 @@ def step_energy_kernel(x: wp.array(dtype=wp.vec3), x_prev: wp.array(dtype=wp.vec
                        out: wp.array(dtype=wp.float64)):
     """Kinetic energy and the external forces' potential ``-f_ext . x`` of the free vertices,
     at the start of the step (``out[0]``: ``v``, ``x_prev``) and at the current iterate
-    (``out[1]``: the velocity `end_step_kernel` would give, ``x``)."""
+    (``out[1]``: the velocity `end_step_kernel` would give, ``x``); the start's kinetic energy
+    alone into ``out[2]`` when there is one."""
     i = wp.tid()
     if inv_mass[i] > 0.0:
         v0 = v[i]
@@ -523,6 +532,8 @@ def step_energy_kernel(x: wp.array(dtype=wp.vec3), x_prev: wp.array(dtype=wp.vec
         f = f_ext[i]
         wp.atomic_add(out, 0, wp.float64(m * wp.dot(v0, v0) - wp.dot(f, x_prev[i])))
         wp.atomic_add(out, 1, wp.float64(m * wp.dot(v1, v1) - wp.dot(f, x[i])))
+        if out.shape[0] > 2:
+            wp.atomic_add(out, 2, wp.float64(m * wp.dot(v0, v0)))
 
 
 @wp.kernel
@@ -873,7 +884,7 @@ class ImplicitEuler(Solver):
         # full budget: room for both)
         self._k_total = self.newton_iterations * (1 + ENERGY_GUARD_ROUNDS * self.energy_guard) * (
             2 if self._guard_linear is not None else 1)
-        self._energy = wp.zeros(2, dtype=wp.float64, device=d)
+        self._energy = wp.zeros(3, dtype=wp.float64, device=d)
         self._energy32 = wp.zeros(1, dtype=wp.float32, device=d)
         # 1 while this step's contact records are empty (`ContactCoupling.mark_free`): a collision
         # stage with nothing near (a hanging sheet with self-collision on) is no contact
@@ -1303,12 +1314,13 @@ class ImplicitEuler(Solver):
 
     @property
     def _guard_eps(self) -> float:
-        """Energy rise the guard tolerates in a step: `GUARD_EPS` of ``M |g|`` times 1 m,
-        at least 1e-9 J."""
+        """Energy rise the guard tolerates in a step: `GUARD_EPS` of ``M |g|`` times 1 m, at
+        least 1e-9 J and `GUARD_KE_REL` of the step's starting kinetic energy (as measured by
+        the last `_energy_gain`, which every comparison calls first)."""
         if not hasattr(self, "_eps_cache"):
             mg = float(np.sum(self.model.masses)) * float(np.linalg.norm(self.model.gravity))
             self._eps_cache = max(GUARD_EPS * mg, 1.0e-9)
-        return self._eps_cache
+        return max(self._eps_cache, GUARD_KE_REL * getattr(self, "_ke0", 0.0))
 
     def _energy_gain(self, x, v, dt: float) -> float:
         """Total energy (kinetic, springs, implicit force terms, external forces' potential;
@@ -1328,7 +1340,7 @@ class ImplicitEuler(Solver):
                 self._energy32.zero_()
                 t.energy(xc, self._energy32)
                 launch(to_float64_kernel, 1, [self._energy32, e[j:j + 1]], device=d)
-        e0, e1 = (float(v) for v in e.numpy())
+        e0, e1, self._ke0 = (float(v) for v in e.numpy())
         return e1 - e0
 
     def step_tolerances(self, dt: float) -> tuple:
