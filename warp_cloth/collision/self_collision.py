@@ -1132,7 +1132,8 @@ class SelfCollision:
             out.append({tuple(int(i) for i in p) for p in pairs.numpy()[:k]})
         return tuple(out)
 
-    def _query(self, x0, x1, gap, record, done, vt_pairs, ee_pairs, npairs, vt=True, ee=True):
+    def _query(self, x0, x1, gap, record, done, vt_pairs, ee_pairs, npairs, vt=True, ee=True,
+               moved=None):
         # every box, the stored ones and the queries', is inflated by half the gap: two
         # elements that come within ``gap`` of each other on their paths have points in their
         # swept boxes less than ``gap`` apart along every axis, so the half-inflated boxes
@@ -1140,7 +1141,9 @@ class SelfCollision:
         # gap, as before, listed the pairs within twice it: on the twist at frame 150, 95k
         # edge-edge candidates for 278 contacts, 45k with half (`bench selfcollision`)
         b, m, d = self.broad, self.model, self.device
-        b.update(x0, x1, 0.5 * float(gap), vertices=self._in_span)
+        # ``moved`` (BVH): only the pairs with a marked vertex (`_detect_moved`)
+        partial = self._in_span or moved is not None
+        b.update(x0, x1, 0.5 * float(gap), vertices=partial)
         common = [x0, x1]
         if b.method == "grid":
             if vt:
@@ -1154,8 +1157,9 @@ class SelfCollision:
                         self.thickness, m.inv_mass, self.rest, done, record, ee_pairs, npairs],
                        device=d)
         else:
-            active = self._no_int
-            if self._in_span:  # allowances from the span's start: only the active part queries
+            active = self._no_int if moved is None else moved
+            if self._in_span and moved is None:  # allowances from the span's start: only the
+                # active part queries
                 active = self._active
                 slack = max(0.0, 0.5 * (float(gap) - self.thickness))
                 launch(active_kernel, m.num_vertices, [x0, x1, self._allow, slack, active],
@@ -1164,7 +1168,7 @@ class SelfCollision:
                 launch(self_vt_bvh_kernel, m.num_vertices,
                        [b.tri_bvh.id, *common, b.tris, gap, self.thickness, m.inv_mass,
                         self.rest, done, active, record, vt_pairs, npairs], device=d)
-                if self._in_span:
+                if partial:
                     launch(self_tv_bvh_kernel, b.num_tris,
                            [b.vertex_bvh.id, b.lowers, b.uppers, *common, b.tris, gap,
                             self.thickness, m.inv_mass, self.rest, done, active, record,
@@ -1430,7 +1434,8 @@ class SelfCollision:
                     self._incremental], device=self.device)
             self.record.overflow.zero_()
             wp.capture_if(self._incremental, on_true=self._round_incremental,
-                          on_false=self._round_full, x_start=x_start, x=state.x)
+                          on_false=self._detect_full, x_start=x_start, x=state.x,
+                          gap=self._gap)
             wp.copy(self._x_round, state.x)
         self._project(state, dt)
         if self._obstacles is not None:
@@ -1445,39 +1450,24 @@ class SelfCollision:
         launch(round_end_kernel, 1, [self.record, self.violated, self.done, self.counters,
                                      self._flags, self.rounds], device=self.device)
 
-    def _round_full(self, x_start, x):
+    def _detect_full(self, x_start, x, gap):
         self.record.count.zero_()
-        self.detect(x_start, x, self._gap, self.record, self.done)
+        self.detect(x_start, x, gap, self.record, self.done)
 
-    def _round_incremental(self, x_start, x):
-        d, b, m = self.device, self.broad, self.model
+    def _round_incremental(self, x_start, x, gap):
+        d = self.device
         launch(record_stash_kernel, self.threads, [self.record, self._stash, self.threads],
                device=d)
         self.record.count.zero_()
         launch(record_keep_kernel, self.threads, [self._stash, self._moved_round, self.record,
                                                   self.threads], device=d)
-        self._detect_moved(x_start, x, self._gap)
+        self._detect_moved(x_start, x, gap)
 
     def _detect_moved(self, x_start, x, gap):
         """The pairs with a vertex marked in ``_moved_round`` that come within ``gap`` on the
         paths ``x_start -> x``, appended to the record."""
-        d, b, m = self.device, self.broad, self.model
-        b.update(x_start, x, 0.5 * float(gap), vertices=True)
-        common = [x_start, x]
-        active = self._moved_round
-        pairs = self._no_pairs
-        if b.num_tris:
-            launch(self_vt_bvh_kernel, m.num_vertices,
-                   [b.tri_bvh.id, *common, b.tris, gap, self.thickness, m.inv_mass,
-                    self.rest, self.done, active, self.record, pairs, self._npairs], device=d)
-            launch(self_tv_bvh_kernel, b.num_tris,
-                   [b.vertex_bvh.id, b.lowers, b.uppers, *common, b.tris, gap,
-                    self.thickness, m.inv_mass, self.rest, self.done, active, self.record,
-                    pairs, self._npairs], device=d)
-        if b.num_edges:
-            launch(self_ee_bvh_kernel, b.num_edges,
-                   [b.edge_bvh.id, *common, b.edges, gap, self.thickness, m.inv_mass,
-                    self.rest, self.done, active, self.record, pairs, self._npairs], device=d)
+        self._query(x_start, x, gap, self.record, self.done, self._no_pairs, self._no_pairs,
+                    self._npairs, moved=self._moved_round)
 
     def _fallback(self, state, x_start, dt, steps):
         # what is left after the last round: paths that still come within 5 % of the thickness
@@ -1508,19 +1498,15 @@ class SelfCollision:
 
     def _zone_pass(self, state, x_start, dt, steps, gap):
         if self._incremental is None:
-            self._zone_detect_full(x_start, state.x, gap)
+            self._detect_full(x_start, state.x, gap)
         else:
             wp.capture_if(self._zone_incremental, on_true=self._zone_detect_incremental,
-                          on_false=self._zone_detect_full, x_start=x_start, x=state.x, gap=gap)
+                          on_false=self._detect_full, x_start=x_start, x=state.x, gap=gap)
             self._zone_incremental.zero_()
         wp.capture_if(self._zone_flags[2:3], self._zone_move, state=state, x_start=x_start,
                       dt=dt, steps=steps)
         launch(zone_pass_kernel, 1, [self.record, self._zone_flags, self.zone_passes],
                device=self.device)
-
-    def _zone_detect_full(self, x_start, x, gap):
-        self.record.count.zero_()
-        self.detect(x_start, x, gap, self.record, self.done)
 
     def _zone_detect_incremental(self, x_start, x, gap):
         d = self.device
