@@ -310,6 +310,66 @@ def test_incline_sticks_below_and_slides_above_tan_mu(solver_name, ratio):
     assert (phi >= th - 1e-3).all()
 
 
+@pytest.mark.parametrize("guess", ["start", "velocity", "auto"])
+@pytest.mark.parametrize("ratio", [0.8, 1.25])
+def test_incline_friction_with_guesses_without_the_gravity_step(guess, ratio):
+    """Implicit Euler from ``x0`` or ``x0 + dt v0`` (no ``dt^2 g`` in the guess): the sheet at
+    rest on the incline sticks below tan(angle) = mu and slides as Coulomb says above it.
+    Without the external forces' step in friction's guess (`friction_guess_kernel`'s
+    ``f_ext``) the sheet started on friction's static branch and never slid (0.0 m against
+    0.047 m); without the resting-contact rule (`newton_contact_kernel`) it did not move."""
+    mu = 0.5
+    angle = math.atan(ratio * mu)
+    normal = (-math.sin(angle), math.cos(angle), 0.0)
+    plane = Plane(normal, (0.0, 0.0, 0.0))
+    th = 0.005
+    grid = TriMesh.grid(4, 4, size=0.2, plane="xz", origin=(-0.1, th, -0.1))
+    mesh = TriMesh(plane.to_world(grid.vertices, 0.0), grid.triangles, name="cloth")
+    model = ClothModel(mesh, damping=0.0)
+    contact = ObstacleContact(model, [plane], thickness=th, friction=mu, restitution=0.0)
+    solver = make_solver("implicit", model, initial_guess=guess)
+    solver.add_correction(contact)
+    dt = solver_dt(solver)
+    st = model.state()
+    x0 = st.positions().mean(axis=0)
+    t_end = 0.3
+    for _ in range(int(round(t_end / dt))):
+        solver.step(st, dt)
+    down = np.array([-math.cos(angle), -math.sin(angle), 0.0])
+    s = float((st.positions().mean(axis=0) - x0) @ down)
+    expected = 0.5 * 9.81 * (math.sin(angle) - mu * math.cos(angle)) * t_end**2
+    if ratio < 1:
+        assert abs(s) < 1e-4, f"slid {s:.2e} m below tan(angle) = mu"
+    else:
+        assert s == pytest.approx(expected, rel=0.15), (s, expected)
+    phi = plane.signed_distance(st.positions(), st.t)
+    assert (phi >= th - 1e-3).all()
+
+
+@pytest.mark.parametrize("guess", ["inertial", "velocity", "auto"])
+def test_a_sheet_at_rest_on_a_point_of_support_starts_to_fall(guess):
+    """A flat sheet at rest whose centre vertex rests on a sphere: the rest of it must droop.
+    Each step has a contact entry, so ``"auto"`` starts it from ``x0 + dt v0`` = ``x0``,
+    where the residual of the free vertices is their gravity step, 6.1e-7 m at dt = 1/4000 s,
+    below the 1e-6 m floor of the step's tolerance: without the one solve such a guess always
+    takes, Newton accepted the guess and the sheet hung in the air for good."""
+    th = 0.005
+    sphere = Sphere(0.1, (0.0, 0.0, 0.0))
+    grid = TriMesh.grid(8, 8, size=0.4, plane="xz", origin=(-0.2, 0.1 + th, -0.2))
+    model = ClothModel(grid, damping=0.0)
+    contact = ObstacleContact(model, [sphere], thickness=th, friction=0.5, restitution=0.0)
+    solver = make_solver("implicit", model, initial_guess=guess, collision=contact)
+    st = model.state()
+    y0 = st.positions()[:, 1].copy()
+    dt, steps = 1.0 / 4000.0, 40
+    for _ in range(steps):
+        solver.step(st, dt)
+    drop = y0 - st.positions()[:, 1]
+    corner = float(drop[0])
+    assert corner > 0.5 * 0.5 * 9.81 * (steps * dt) ** 2, corner  # half of free fall's
+    assert float(drop[40]) < 1e-3  # the centre vertex (4, 4) stays on the sphere
+
+
 # ------------------------------------------------------------------ spinning sphere
 def angular_momentum_y(model, st, center):
     r = st.positions() - center

@@ -50,6 +50,7 @@ BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stab
 SOLVER_OPTIONS = {
     "linear": ("linear", ("implicit", "pd")),
     "newton_iterations": ("newton_iterations", ("implicit",)),
+    "initial_guess": ("initial_guess", ("implicit",)),
     "smoothing_sweeps": ("smoothing_sweeps", ("implicit", "pd")),
     "iterations": ("iterations", ("pbd", "pd")),
     "gauss_seidel": ("gauss_seidel", ("pbd",)),
@@ -188,6 +189,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--linear", choices=["jacobi", "chebyshev", "cg", "cholesky"], default=None,
                    help="inner linear solver (implicit, pd; cholesky: implicit only)")
     r.add_argument("--newton-iterations", type=_positive_int, default=None, help="implicit")
+    r.add_argument("--initial-guess", choices=["inertial", "start", "velocity", "auto"],
+                   default=None,
+                   help="implicit: where Newton starts (default inertial; auto: x0 + dt v0 in "
+                        "steps with contact, faster to converge on cloth resting on surfaces "
+                        "and on itself)")
     r.add_argument("--smoothing-sweeps", type=_nonneg_int, default=None, metavar="N",
                    help="implicit, pd: Gauss-Seidel sweeps on the step's potential after its "
                         "solve (implicit: one that stopped short; default 4; pd: default 0)")

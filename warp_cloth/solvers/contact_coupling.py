@@ -76,6 +76,24 @@ inertia block for the step (``slide``, `pd_local`); the others keep the stiff on
 sheets (8, 12, 16 cells) still stay: the tension reaches too few vertices past the cap. Not
 solved there.
 
+**Resting contact** (implicit Euler with a guess that leaves the external forces' step out,
+``initial_guess`` ``"start"``, ``"velocity"`` or ``"auto"``). Such a guess starts a resting
+vertex on its surface (``g >= 0``), where the penalty has no force and, active only for
+``g < 0``, no Hessian: Newton's first direction then pushed every supported vertex down by
+``dt^2 g`` as if free, the line search saw the penalty rise at every length (F 0.0281 ->
+0.0284 J at the full step), and a folded sheet lying across the floor froze in its start pose
+(a 10 x 10 fold at 150 degrees, every step stalled at a residual of 7.2e-3 m). In a step's
+first Newton assembly an entry within `RESTING_BAND` above its constraint is therefore active
+with the penalty's block and no force (`newton_contact_kernel`'s ``resting``): the direction
+respects the support, the next iterate is just inside it (where the penalty acts by itself),
+and a vertex that is being lifted is free again from the second iteration (a block kept
+through the solve would hold it to the surface, about a thousandth of its free motion per
+iteration). Its friction guess adds what the guess left out of the inertial prediction (the
+external forces' step, and for ``x0`` the velocity's) to the predicted sliding and penetration
+(`friction_guess_kernel`'s ``f_ext``), as at the inertial guess: without it a sheet at rest on
+an incline above its friction angle started on friction's static branch and never slid, and
+below it got no normal force in its first step and slid.
+
 **Sag.** A penalty gives under load: a vertex pressed against a surface by the cloth's tension
 (the table's sides, held by the draped part) ends its solve about ``load dt^2 / (kappa m)``
 inside its target, 0.1-0.5 mm there, and the response after the solve (`CollisionStage.resolve`)
@@ -382,6 +400,12 @@ def self_sag_persist_kernel(raw: wp.array(dtype=float), last: wp.array(dtype=flo
     last[i] = r
 
 
+#: metres: in the first Newton assembly of a step whose guess left the external forces' step
+#: out, an entry whose gap is in [0, this) is active with its penalty block (module doc,
+#: *Resting contact*); about the gravity step at dt = 1/120 s (6.8e-5 m)
+RESTING_BAND = wp.constant(1.0e-4)
+
+
 @wp.kernel
 def newton_contact_kernel(
     rec: ContactRecord,
@@ -398,21 +422,33 @@ def newton_contact_kernel(
     nblock: wp.array(dtype=wp.mat33),
     active: wp.array(dtype=int),
     on_out: wp.array(dtype=int),
+    resting: int,
 ):
     """Active entries: their force ``-grad E_c`` into ``b``; their blocks into ``diag`` and
     ``vblock`` (``w_j^2 H``), the normal penalty's alone into ``nblock`` (for the residual);
     the number of active entries into ``active[0]``; with an ``on_out`` array, each entry's
-    activity (the off-diagonal part of the multi-vertex entries' Hessian, `pair_matvec_list_kernel`)."""
+    activity (the off-diagonal part of the multi-vertex entries' Hessian, `pair_matvec_list_kernel`).
+
+    With ``resting`` (the step's first assembly, `ContactCoupling.resting`): an entry within `RESTING_BAND` above its constraint is active too, with the penalty's block
+    and no force (module doc, *Resting contact*)."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
         on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources,
                                          0.0)
+        vid = rec.vertex[e]
+        w = rec.weight[e]
+        if resting != 0:
+            g, im = entry_gap(rec, e, x, inv_mass)
+            if g >= 0.0 and g < RESTING_BAND and im > 0.0 and not pin_held(vid, w, inv_mass):
+                n = rec.normal[e]
+                on = True
+                hn = (kappa_dt2 / im) * wp.outer(n, n)
+                H = H + hn
+                Hn = Hn + hn
         if on_out.shape[0] > 0:
             on_out[e] = int(on)
         if on:
-            vid = rec.vertex[e]
-            w = rec.weight[e]
             for j in range(4):
                 v = vid[j]
                 if v >= 0 and inv_mass[v] > 0.0:
@@ -504,6 +540,7 @@ def friction_guess_kernel(
     gravity: wp.vec3,
     slide: wp.array(dtype=int),
     project: int,
+    f_ext: wp.array(dtype=wp.vec3),
 ):
     """Friction's normal force for the step, and the initial guess of a vertex that friction
     can hold this step. The force: the larger of the last step's and ``m |g| / dt^2`` at the
@@ -540,10 +577,20 @@ def friction_guess_kernel(
         n = rec.normal[e]
         g = wp.dot(n, x[i]) - rec.offset[e]
         lam_i = lam[slot]
-        if g < 0.0:
-            arriving = lam_i <= 0.0
-            lam_i = wp.max(lam_i, -g / (dt2 * w))
+        gp = g
+        pred = wp.vec3(0.0)  # what the guess left out of the inertial prediction
+        if f_ext.shape[0] > 0:
+            # a guess ``x0 + dt v0`` or ``x0`` left out the external forces' step (gravity)
+            # and, for ``x0``, the velocity's (``-disp``, 0 for ``x0 + dt v0``): the predicted
+            # penetration takes them in, so a resting vertex's normal force is its weight, as
+            # at the inertial guess
+            pred = (dt2 * w) * f_ext[i] - disp[i]
+            gp = g + wp.dot(n, pred)
+        arriving = lam_i <= 0.0  # no normal force from the last step
+        if gp < 0.0:
+            lam_i = wp.max(lam_i, -gp / (dt2 * w))
             lam[slot] = lam_i
+        if g < 0.0:
             if project != 0 and arriving:
                 # a vertex arriving at its surface this step starts on the constraint's plane,
                 # not inside it (``project``: implicit Euler)
@@ -567,12 +614,14 @@ def friction_guess_kernel(
                 slide[e] = 1
         target = wp.vec3(0.0)  # sticks
         if wp.length(F) > mu * lam_i:
-            # slides: its prediction, slowed by what the full friction force cancels in a step
-            y = wp.length(u)
+            # slides: its prediction (with what the guess left out of it, ``pred``), slowed by
+            # what the full friction force cancels in a step
+            up = u + pred - wp.dot(pred, n) * n
+            y = wp.length(up)
             cap = mu * lam_i * dt2 * w
-            target = u
+            target = up
             if y > 0.0:
-                target = (1.0 - wp.min(cap, y) / y) * u
+                target = (1.0 - wp.min(cap, y) / y) * up
         wp.atomic_add(x, i, target - u)
         wp.atomic_add(disp, i, target - u)
 
@@ -877,6 +926,10 @@ class ContactCoupling:
         self.sag_cap = SAG_CAP * stage.thickness if has_obstacles else 0.0
         self._no_flags = wp.zeros(0, dtype=int, device=self.device)
         self._no_vec = wp.zeros(0, dtype=wp.vec3, device=self.device)
+        #: Newton's resting-contact rule (`newton_contact_kernel`'s ``resting``): set by implicit
+        #: Euler when its guess leaves the external forces' step out (a resting vertex then
+        #: starts on its surface, where its penalty is not yet active)
+        self.resting = False
         self._no_free = wp.zeros(0, dtype=float, device=self.device)
         # sized by the obstacle record: `pairs_on`, `slide` (per entry: driven past static
         # friction this step, PD) and the threads (again whenever the stage regrows it)
@@ -941,9 +994,11 @@ class ContactCoupling:
             self.self_list_n.zero_()
 
     # ------------------------------------------------------------------ Newton
-    def add_newton(self, x, b, diag, dt: float) -> None:
+    def add_newton(self, x, b, diag, dt: float, resting: bool = False) -> None:
         """Active entries' force into ``b`` and Hessian blocks into ``diag`` and `vblock`
-        (which this clears first: call once per Newton assembly, after ``diag`` is set)."""
+        (which this clears first: call once per Newton assembly, after ``diag`` is set);
+        ``resting``: the entries resting on their constraints too (module doc, *Resting
+        contact*; a step's first assembly)."""
         self.vblock.zero_()
         self.nblock.zero_()
         self.active.zero_()
@@ -951,7 +1006,7 @@ class ContactCoupling:
         launch(newton_contact_kernel, self.threads,
                [self.record, x, self.model.inv_mass, *self._args(dt), b, diag, self.vblock,
                 self.nblock, self.active,
-                self.pairs_on if self.pairs_on is not None else self._no_flags],
+                self.pairs_on if self.pairs_on is not None else self._no_flags, int(resting)],
                device=self.device)
         if self.pairs_on is not None:  # the active feature pairs, listed for `matvec_add`
             self.pairs_list_n.zero_()
@@ -963,7 +1018,7 @@ class ContactCoupling:
             launch(newton_contact_kernel, self.self_threads,
                    [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
                     self.self_threads, b, diag, self.vblock, self.nblock, self.self_active,
-                    self.self_on], device=self.device)
+                    self.self_on, int(resting)], device=self.device)
             self._list_self_on()
 
     def _list_self_on(self) -> None:
@@ -1063,7 +1118,7 @@ class ContactCoupling:
         pass
 
     def friction_guess(self, x, disp, dt: float, f_drive, classify: bool = False,
-                       project: bool = False) -> None:
+                       project: bool = False, f_ext=None) -> None:
         """Friction's normal force for the step and the initial guess of the vertices it acts
         on (`friction_guess_kernel`; ``f_drive``: the forces other than contact at ``x``, the
         prediction); ``disp`` (which tracks ``x - x_hat``) is updated the same. ``classify``
@@ -1074,7 +1129,7 @@ class ContactCoupling:
                [self.record, x, self.model.inv_mass, self.lam, self.sources, dt * dt,
                 f_drive, self.threads, disp, self.f_other if classify else self._no_vec,
                 wp.vec3(*self.model.gravity), self.slide if classify else self._no_flags,
-                int(project)],
+                int(project), self._no_vec if f_ext is None else f_ext],
                device=self.device)
         self._classified = bool(classify)
 
