@@ -236,6 +236,12 @@ def test_selfcollision_bench_reports_both_variants(capsys):
     rows = json.loads(capsys.readouterr().out)
     assert [r["captured"] for r in rows] == [False]
     assert rows[0]["responses"] == rows[0]["substeps"]
+    # implicit Euler's guesses, each a row of its own (the guess reaches the solver)
+    assert selfcollision.main(["--solver", "implicit", "--res", "6", "--warmup", "40",
+                               "--rounds", "1", "--broadphase", "bvh", "--self-motion", "0.25",
+                               "--initial-guess", "inertial", "auto", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [r["solver"] for r in rows] == ["implicit", "implicit (auto)"]
     with pytest.raises(SystemExit):
         selfcollision.main(["--self-motion", "-1"])
 

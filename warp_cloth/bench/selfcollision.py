@@ -61,6 +61,9 @@ def main(argv=None) -> int:
     p.add_argument("--no-capture", action="store_true",
                    help="launch every step's kernels one by one, even where a scene run would "
                         "replay the frame as recorded Warp graphs")
+    p.add_argument("--initial-guess", nargs="+", default=["inertial"],
+                   choices=["inertial", "start", "velocity", "auto"],
+                   help="implicit Euler's initial guesses to time (default: inertial)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     if (args.res is not None and args.res < 2) or args.warmup < 0 or args.rounds < 1:
@@ -77,11 +80,14 @@ def main(argv=None) -> int:
 
     rows = []
     t_all = time.perf_counter()
-    cases = [(sn, name) for sn in args.scenes for name in args.solver]
-    for scene_name, name in cases:
+    cases = [(sn, name, g) for sn in args.scenes for name in args.solver
+             for g in (args.initial_guess if name == "implicit" else [None])]
+    for scene_name, name, guess in cases:
         res = args.res if args.res is not None else {"fold": 16, "twist": 49}[scene_name]
+        options = {"initial_guess": guess} if guess is not None else None
         scene = getattr(contact_scenes, scene_name)(solver=name, res=res, frames=600,
-                                                    device=args.device)
+                                                    device=args.device,
+                                                    solver_options=options)
         solver, stage = scene.solver, scene.collision
         substeps = suggest_substeps(solver, 1.0 / 60.0)
         dt = 1.0 / (60.0 * substeps)
@@ -152,7 +158,9 @@ def main(argv=None) -> int:
                 continue
             bp, mo = variant
             w = 1e3 * statistics.median(times[variant]) / substeps
-            rows.append(dict(scene=scene_name, res=res, solver=name, broadphase=bp, self_motion=mo, substeps=substeps,
+            used = getattr(solver, "initial_guess", None)  # the solver's own, not the option
+            label = name if used in (None, "inertial") else f"{name} ({used})"
+            rows.append(dict(scene=scene_name, res=res, solver=label, broadphase=bp, self_motion=mo, substeps=substeps,
                              ms_step_with=w, ms_step_without=wo, overhead=w / wo - 1.0,
                              responses=responses[variant], contacts=contacts[variant],
                              vertices=scene.model.num_vertices, captured=captured))
