@@ -99,7 +99,7 @@ def test_one_newton_step_leaves_a_larger_residual():
     assert full.stats["residual"] < 1e-4 < 1e-2 * res[1 / 30]
 
 
-@pytest.mark.parametrize("guess", ["inertial", "start"])
+@pytest.mark.parametrize("guess", ["inertial", "start", "velocity", "auto"])
 def test_a_moving_sheet_translates_with_either_initial_guess(guess):
     """With no force, a free sheet moving at v0 translates by v0 t and keeps v0, whatever
     Newton starts from, and the energy guard leaves it alone. ``initial_guess="start"`` begins
