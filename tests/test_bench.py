@@ -241,7 +241,7 @@ def test_selfcollision_bench_reports_both_variants(capsys):
                                "--rounds", "1", "--broadphase", "bvh", "--self-motion", "0.25",
                                "--initial-guess", "inertial", "auto", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
-    assert [r["solver"] for r in rows] == ["implicit", "implicit (auto)"]
+    assert [r["solver"] for r in rows] == ["implicit (inertial)", "implicit"]
     with pytest.raises(SystemExit):
         selfcollision.main(["--self-motion", "-1"])
 

@@ -191,9 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--newton-iterations", type=_positive_int, default=None, help="implicit")
     r.add_argument("--initial-guess", choices=["inertial", "start", "velocity", "auto"],
                    default=None,
-                   help="implicit: where Newton starts (default inertial; auto: x0 + dt v0 in "
-                        "steps with contact, faster to converge on cloth resting on surfaces "
-                        "and on itself)")
+                   help="implicit: where Newton starts (default auto: x0 + dt v0 in steps "
+                        "with contact, the inertial guess in the others; inertial: the guess "
+                        "of the figures measured before 2026-12-06)")
     r.add_argument("--smoothing-sweeps", type=_nonneg_int, default=None, metavar="N",
                    help="implicit, pd: Gauss-Seidel sweeps on the step's potential after its "
                         "solve (implicit: one that stopped short; default 4; pd: default 0)")

@@ -61,9 +61,9 @@ def main(argv=None) -> int:
     p.add_argument("--no-capture", action="store_true",
                    help="launch every step's kernels one by one, even where a scene run would "
                         "replay the frame as recorded Warp graphs")
-    p.add_argument("--initial-guess", nargs="+", default=["inertial"],
+    p.add_argument("--initial-guess", nargs="+", default=["auto"],
                    choices=["inertial", "start", "velocity", "auto"],
-                   help="implicit Euler's initial guesses to time (default: inertial)")
+                   help="implicit Euler's initial guesses to time (default: auto, its default)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     if (args.res is not None and args.res < 2) or args.warmup < 0 or args.rounds < 1:
@@ -159,7 +159,7 @@ def main(argv=None) -> int:
             bp, mo = variant
             w = 1e3 * statistics.median(times[variant]) / substeps
             used = getattr(solver, "initial_guess", None)  # the solver's own, not the option
-            label = name if used in (None, "inertial") else f"{name} ({used})"
+            label = name if used in (None, "auto") else f"{name} ({used})"
             rows.append(dict(scene=scene_name, res=res, solver=label, broadphase=bp, self_motion=mo, substeps=substeps,
                              ms_step_with=w, ms_step_without=wo, overhead=w / wo - 1.0,
                              responses=responses[variant], contacts=contacts[variant],
