@@ -1,4 +1,5 @@
-"""Kernels every solver shares: scripted pin targets and the device clock."""
+"""Kernels every solver shares: scripted pin targets, the device clock, the energy seen from a
+moving obstacles' steady frame."""
 
 from __future__ import annotations
 
@@ -56,3 +57,31 @@ def advance_time_kernel(time: wp.array(dtype=wp.float64), dt: float):
 def to_float64_kernel(src: wp.array(dtype=float), dst: wp.array(dtype=wp.float64)):
     """``dst[0] += src[0]`` (a float32 energy into a float64 sum)."""
     dst[0] = dst[0] + wp.float64(src[0])
+
+
+@wp.func
+def frame_kinetic(half_mass: float, v: wp.vec3, x: wp.vec3, frame_u: wp.vec3, frame_w: wp.vec3,
+                  frame_c: wp.vec3):
+    """A vertex's kinetic energy seen from a frame moving at ``frame_u`` and turning at
+    ``frame_w`` about ``frame_c``, less the centrifugal potential: ``1/2 m |v - u - w x r|^2 -
+    1/2 m |w x r|^2`` (``r = x - c``; `motion.steady_frame`, where steadily moving obstacles do
+    no work), and the size of its terms, ``1/2 m (|v - u - w x r|^2 + |w x r|^2)`` (their
+    float32 rounding scale)."""
+    rot = wp.cross(frame_w, x - frame_c)
+    rel = v - frame_u - rot
+    return (half_mass * (wp.dot(rel, rel) - wp.dot(rot, rot)),
+            half_mass * (wp.dot(rel, rel) + wp.dot(rot, rot)))
+
+
+def steady_frame_args(contact, empty):
+    """``(flag, u, w, c)`` for the kernels measuring in the moving obstacles' steady frame
+    (`frame_kinetic`): the device flag 'this step runs in it' (`ObstacleContact.steady`) and
+    the frame (`motion.steady_frame`); a flag that stays 0 (and zeros) when the moving obstacles
+    have no such frame, ``empty`` (an empty int array: the world frame) when none moves."""
+    zero = wp.vec3(0.0, 0.0, 0.0)
+    if contact is not None and contact.moving:
+        if contact.frame is None:
+            return contact.steady, zero, zero, zero
+        u, w, c = contact.frame
+        return contact.steady, wp.vec3(*u), wp.vec3(*w), wp.vec3(*c)
+    return empty, zero, zero, zero

@@ -140,7 +140,8 @@ import warp as wp
 from ..runstats import Note
 from ..util import launch
 from .base import Solver
-from .common import spring_energy64_kernel, spring_stretch64, to_float64_kernel
+from .common import (frame_kinetic, spring_energy64_kernel, spring_stretch64,
+                     steady_frame_args, to_float64_kernel)
 from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
 from .linear import CGSolver, SpringSystemOperator, make_linear_solver, spring_block_matrix
 from .smoothing import DEFAULT_SMOOTHING_SWEEPS, VertexSmoother, check_sweeps
@@ -561,16 +562,9 @@ def step_energy_kernel(x: wp.array(dtype=wp.vec3), x_prev: wp.array(dtype=wp.vec
         k0 = m * wp.dot(v0, v0)
         k1 = m * wp.dot(v1, v1)
         if steady.shape[0] > 0:
-            if steady[0] != 0:
-                # seen from the moving obstacles' steady frame (`motion.steady_frame`): the
-                # relative kinetic energy less the centrifugal potential, as PD's
-                # `pd_energy_kernel`
-                r0 = wp.cross(frame_w, x_prev[i] - frame_c)
-                r1 = wp.cross(frame_w, x[i] - frame_c)
-                a = v0 - frame_u - r0
-                c = v1 - frame_u - r1
-                k0 = m * (wp.dot(a, a) - wp.dot(r0, r0))
-                k1 = m * (wp.dot(c, c) - wp.dot(r1, r1))
+            if steady[0] != 0:  # seen from the moving obstacles' steady frame
+                k0, s0 = frame_kinetic(m, v0, x_prev[i], frame_u, frame_w, frame_c)
+                k1, s1 = frame_kinetic(m, v1, x[i], frame_u, frame_w, frame_c)
         wp.atomic_add(out, 0, wp.float64(k0 - wp.dot(f, x_prev[i])))
         wp.atomic_add(out, 1, wp.float64(k1 - wp.dot(f, x[i])))
         if out.shape[0] > 2:
@@ -945,6 +939,8 @@ class ImplicitEuler(Solver):
         # 1 while this step's contact records are empty (`ContactCoupling.mark_free`): a collision
         # stage with nothing near (a hanging sheet with self-collision on) is no contact
         self._free = wp.ones(1, dtype=int, device=d)
+        self._no_int = wp.zeros(0, dtype=int, device=d)  # an empty flag: the world frame
+        self._steady_now = False  # this step measures energy in the obstacles' steady frame
         self._fallbacks_seen = 0  # (`_frame_messages`, linear="cholesky")
         self._guard = {"extended": 0, "gained": 0, "new": 0, "last": 0.0, "rejected": 0,
                        "steady": 0,
@@ -1135,12 +1131,6 @@ class ImplicitEuler(Solver):
             # the forces at the inertial guess, and going back toward x0 from there made a
             # sheet stick above its friction angle)
             self._choose_guess(state.x, state.v, dt)
-        # a guess without the external forces' step (`contact_guess_kernel`) takes one solve:
-        # their step, dt^2 g, can be below the step's tolerance (its 1e-6 m floor at small
-        # dt), and a cloth at rest would never start to fall
-        must_solve = self.initial_guess == "velocity" or (
-            self.initial_guess == "auto" and coupling is not None
-            and int(self._free.numpy()[0]) == 0)
         # a step in contact with steadily moving obstacles: a stall after a short line-search
         # step is checked against the energy seen from their frame
         steady_check = (self.energy_guard and self.line_search and self.tolerance is not None
@@ -1190,7 +1180,7 @@ class ImplicitEuler(Solver):
                 r = float(self.residuals.numpy()[k])
                 if trace is not None:
                     trace.append({"F": self.objective(x), "residual": r})
-                if check and r < tol and (k > 0 or not must_solve):
+                if check and r < tol and (k > 0 or not self._must_solve(coupling)):
                     residual, measured = r, True
                     break
             if (extended or use_cg) and self._guard_linear is not None:
@@ -1237,7 +1227,7 @@ class ImplicitEuler(Solver):
                     trace[-1]["step"] = float(step.numpy()[0])
                 if (check and moved < step_tol and not switched and steady_check
                         and float(step.numpy()[0]) < LS_STEPS[-1] and k + 1 < self._k_total
-                        and self._energy_gain(x, state.v, dt, steady=True) > self._guard_eps):
+                        and self._energy_gain(x, state.v, dt) > self._guard_eps):
                     # the line search's short step, not a converged Newton, moved less than the
                     # step tolerance, while the energy seen from the moving obstacles' steady
                     # frame rose: iterate on (a stop there raised the spinning sphere's frame
@@ -1394,7 +1384,7 @@ class ImplicitEuler(Solver):
         obstacle that moves in this step (`ObstacleContact.still`, set by the step's detection
         before the solve; one host read, in a step that reads its residuals anyway), or one
         whose moving obstacles run in their steady frame in a step with contact, where the
-        guard's energies are the ones seen from that frame (`_steady_frame`; 16 x 16 sheet on
+        guard's energies are the ones seen from that frame (`_energy_gain`; 16 x 16 sheet on
         a sphere turning at 3 rad/s, inertial guess: without it 6 frames rose by more than
         2e-5 J in that frame, up to 5.1e-5 J). Measured: with the guard off for a whole scene
         with a moving obstacle, the ``spin`` scene's sheet landing on its sphere, which starts
@@ -1402,7 +1392,7 @@ class ImplicitEuler(Solver):
         contact = getattr(self.collision, "contact", None)
         if (contact is not None and contact.moving
                 and getattr(self.model, "pin_path", None) is None):
-            return bool(int(contact.still.numpy()[0])) or getattr(self, "_steady_now", False)
+            return bool(int(contact.still.numpy()[0])) or self._steady_now
         return not self._outside_work()
 
     @property
@@ -1415,18 +1405,15 @@ class ImplicitEuler(Solver):
             self._eps_cache = max(GUARD_EPS * mg, 1.0e-9)
         return max(self._eps_cache, GUARD_KE_REL * getattr(self, "_ke0", 0.0))
 
-    def _steady_frame(self, steady: bool):
-        """``(u, w, c, flag)`` for `step_energy_kernel`: with ``steady``, the moving obstacles'
-        steady frame (`motion.steady_frame`) and the device flag 'this step runs in it'
-        (`ObstacleContact.steady`); else zeros and an empty flag (the world frame)."""
-        zero = wp.vec3(0.0, 0.0, 0.0)
-        contact = getattr(self.collision, "contact", None)
-        if steady and contact is not None and contact.frame is not None:
-            u, w, c = contact.frame
-            return wp.vec3(*u), wp.vec3(*w), wp.vec3(*c), contact.steady
-        if not hasattr(self, "_no_int"):
-            self._no_int = wp.zeros(0, dtype=int, device=self.device)
-        return zero, zero, zero, self._no_int
+    def _must_solve(self, coupling) -> bool:
+        """A step whose guess left the external forces' step out (`contact_guess_kernel`)
+        takes one solve: their step, dt^2 g, can be below the step's tolerance (its 1e-6 m
+        floor at small dt), and a cloth at rest would never start to fall. One host read
+        (``"auto"``), only when the guess already meets the tolerance."""
+        if self.initial_guess == "velocity":
+            return True
+        return (self.initial_guess == "auto" and coupling is not None
+                and int(self._free.numpy()[0]) == 0)
 
     def _steady_step(self) -> bool:
         """The step has moving obstacles, and they run in their steady frame (one host read)."""
@@ -1437,13 +1424,15 @@ class ImplicitEuler(Solver):
     def _energy_gain(self, x, v, dt: float, steady: bool | None = None) -> float:
         """Total energy (kinetic, springs, implicit force terms, external forces' potential;
         contact penalties left out: they only rise where contact pushes) at the current
-        iterate minus at the start of the step: one host read. ``steady``: seen from the
-        moving obstacles' steady frame (`_steady_frame`)."""
+        iterate minus at the start of the step: one host read. ``steady`` (default: this
+        step's ``_steady_now``): seen from the moving obstacles' steady frame
+        (`common.steady_frame_args`)."""
         m, d, e = self.model, self.device, self._energy
         e.zero_()
         if steady is None:
-            steady = getattr(self, "_steady_now", False)
-        u, w, c, flag = self._steady_frame(steady)
+            steady = self._steady_now
+        contact = getattr(self.collision, "contact", None) if steady else None
+        flag, u, w, c = steady_frame_args(contact, self._no_int)
         launch(step_energy_kernel, m.num_vertices,
                [x, self.x_prev, v, self.disp, m.mass, m.inv_mass, self.f_ext,
                 1.0 / dt, math.exp(-m.damping * dt), e, u, w, c, flag], device=d)

@@ -68,7 +68,7 @@ import warp as wp
 
 from ..util import count_since, launch, positive_finite
 from .base import Solver
-from .common import spring_energy64_kernel, to_float64_kernel
+from .common import frame_kinetic, spring_energy64_kernel, steady_frame_args, to_float64_kernel
 from .contact_coupling import DEFAULT_CONTACT_STIFFNESS, ContactCoupling
 from .linear import (LINEAR_SOLVERS, SpringSystemOperator, csr_arrays, estimate_spectral_radius,
                      make_linear_solver, scalar_csr)
@@ -258,10 +258,7 @@ def pd_energy_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
         scale = ke
         if steady.shape[0] > 0:
             if steady[0] != 0:
-                rot = wp.cross(frame_w, x[i] - frame_c)
-                rel = vi - frame_u - rot
-                ke = 0.5 * mass[i] * (wp.dot(rel, rel) - wp.dot(rot, rot))
-                scale = 0.5 * mass[i] * (wp.dot(rel, rel) + wp.dot(rot, rot))
+                ke, scale = frame_kinetic(0.5 * mass[i], vi, x[i], frame_u, frame_w, frame_c)
         wp.atomic_add(out, 0, wp.float64(ke - mass[i] * wp.dot(gravity, x[i])))
         if ke_out.shape[0] > 0:
             wp.atomic_add(ke_out, 0, wp.float64(scale))
@@ -898,13 +895,7 @@ class ProjectiveDynamics(Solver):
         flag that stays 0 (and zeros) when they have no such frame, an empty one when no
         obstacle moves (as `_still`)."""
         contact = getattr(cc.stage, "contact", None) if cc is not None else None
-        zero = wp.vec3(0.0, 0.0, 0.0)
-        if contact is not None and contact.moving:  # (``steady`` stays 0 without a frame)
-            if contact.frame is None:
-                return contact.steady, zero, zero, zero
-            u, w, c = contact.frame
-            return contact.steady, wp.vec3(*u), wp.vec3(*w), wp.vec3(*c)
-        return self._no_int, zero, zero, zero
+        return steady_frame_args(contact, self._no_int)
 
     def _energy(self, x, v, slot: int, cc=None) -> None:
         """Kinetic, gravity and elastic energy at ``x``, ``v`` into ``_e64[slot]`` (float64
