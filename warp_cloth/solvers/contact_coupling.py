@@ -977,21 +977,30 @@ class ContactCoupling:
         self.active.zero_()
         wp.copy(self.x_pred, x_pred)
         wp.copy(self.x_start, x_start)
-        if self.self_record is not None:
-            sc = self.stage.self_collision  # (None, or in_solve off, when switched off since)
-            self.self_record.count.zero_()
-            self.self_record.overflow.zero_()
-            if sc is not None and self.stage.self_in_solve:
-                sc.detect(x_start, x_pred, sc.thickness + self.stage.self_solve_margin,
-                          self.self_record)
-                launch(add_overflow_kernel, 1, [self.self_record, self.self_dropped],
+        self.detect_self(x_start, x_pred)
+
+    def detect_self(self, x_start, x_end) -> None:
+        """The self-contacts of the solve (none without self-collision in the solve): the pairs
+        whose paths ``x_start -> x_end`` come within the thickness plus the stage's
+        ``self_solve_margin``, in place of the record's entries. `detect` takes them from the
+        predicted path; implicit Euler takes them again from the path to its iterate where that
+        left the prediction far behind (an impact: `implicit.IMPACT_ROUNDS`)."""
+        if self.self_record is None:
+            return
+        sc = self.stage.self_collision  # (None, or in_solve off, when switched off since)
+        self.self_record.count.zero_()
+        self.self_record.overflow.zero_()
+        if sc is not None and self.stage.self_in_solve:
+            sc.detect(x_start, x_end, sc.thickness + self.stage.self_solve_margin,
+                      self.self_record)
+            launch(add_overflow_kernel, 1, [self.self_record, self.self_dropped],
+                   device=self.device)
+            if self.self_sag_cap > 0.0:
+                launch(self_sag_apply_kernel, self.self_threads,
+                       [self.self_record, self.self_sag, self.self_threads],
                        device=self.device)
-                if self.self_sag_cap > 0.0:
-                    launch(self_sag_apply_kernel, self.self_threads,
-                           [self.self_record, self.self_sag, self.self_threads],
-                           device=self.device)
-            self.self_on.zero_()
-            self.self_list_n.zero_()
+        self.self_on.zero_()
+        self.self_list_n.zero_()
 
     # ------------------------------------------------------------------ Newton
     def add_newton(self, x, b, diag, dt: float, resting: bool = False) -> None:
