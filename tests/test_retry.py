@@ -117,6 +117,14 @@ def test_a_cloth_frozen_into_impact_zones_frame_after_frame_is_a_divergence():
                        r"zones.* for 3 frames in a row") as e:
         scene.run(None, quiet=True, energy=False)
     assert e.value.frame == 1 + FROZEN_FRAMES and FROZEN_FRAMES == 3
+    # the frames that froze ran again with 4 and 8 steps and froze too: the message says so,
+    # and that more steps are not the whole answer; without retries it suggests them
+    assert "run again with up to 8 steps, each froze too" in str(e.value)
+    scene = build_scene("hanging", solver="explicit", res=4, frames=8, substeps=2,
+                        stiffness=1e9)
+    scene.retries = 0
+    with pytest.raises(SimulationDiverged, match="more substeps, or a smaller step, hold it"):
+        scene.run(None, quiet=True, energy=False)
 
 
 def test_a_cloth_returned_to_its_start_in_most_steps_frame_after_frame_is_a_divergence():

@@ -357,6 +357,7 @@ class Scene:
         snap = state.clone() if (self.retries and hasattr(stage, "plan")) else None
         retried_frames = 0
         frozen = 0  # frames in a row whose impact zones held most of the cloth
+        locked = 0  # of them, frames that froze run again with the most steps too
         eager_until = 0  # no graph recorded before this frame (after a retry)
         recorded = False  # a graph was recorded (the next recordings are run time)
         wall = 0.0
@@ -433,14 +434,29 @@ class Scene:
                     if mfin.max_strain > self.strain_bound:
                         raise SimulationDiverged(frame, solver.name, max_strain,
                                                  f"strain bound {self.strain_bound:g} exceeded")
-                    frozen = frozen + 1 if getattr(stage, "frame_frozen", False) else 0
+                    frozen_now = getattr(stage, "frame_frozen", False)
+                    frozen = frozen + 1 if frozen_now else 0
+                    # frozen frames that still froze run again with the most steps
+                    locked = locked + 1 if frozen_now and self.retries > 0 and stage is not None \
+                        and retried == self.retries else 0
                     if frozen >= FROZEN_FRAMES:
+                        why = ("its steps tangle the cloth everywhere: an unstable step; more "
+                               "substeps, or a smaller step, hold it")
+                        if locked >= FROZEN_FRAMES:
+                            # (the 16 x 16 twist from frame 258 under implicit Euler, 438 under
+                            # PD: with 8 times the steps too; 24 x 24: 341; the default 49 x 49
+                            # runs through)
+                            why = (f"run again with up to {self.substeps << self.retries} "
+                                   "steps, each froze too: a step still far past the solver's "
+                                   "stable one (explicit Euler: let it choose its substeps), or "
+                                   "a cloth locked by its own layers, which cannot stay a "
+                                   "thickness apart as it is driven on (a twist wound tight on a "
+                                   "coarse mesh: a finer mesh goes further)")
                         raise SimulationDiverged(
                             frame, solver.name, max_strain,
                             f"self-collision froze the cloth (most of it in rigid impact zones, "
                             f"or the whole cloth returned to its start in most steps) for "
-                            f"{frozen} frames in a row (its steps tangle the cloth everywhere: "
-                            "an unstable step; more substeps, or a smaller step, hold it)")
+                            f"{frozen} frames in a row ({why})")
                 if frame > 0 and hasattr(solver, "frame_end"):
                     msgs = solver.frame_end()
                     short_frames += any(not isinstance(msg, Note) for msg in msgs)
