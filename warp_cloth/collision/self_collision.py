@@ -107,6 +107,16 @@ ALLOWANCE_STEPS = 8
 CLEAR_FULL_FRACTION = 0.25
 #: the fail-safe acts on paths that come this close (a fraction of the thickness)
 FAILSAFE_GAP = 0.05
+
+#: detections that grow the rigid impact zones before the whole cloth returns to its start
+#: (`SelfCollision`'s ``zone_passes``). Each pass runs only in a step whose rounds failed, and
+#: the loop stops at the first detection that finds no path (a device-side loop: one
+#: detection in a recorded graph). At 3, a step whose zones met new pairs on their third
+#: growth sent the whole cloth back, while the pinned edges turned on: the 24 x 24 twist under
+#: implicit Euler froze from frame 341 and the 16 x 16 under PD from 438, retries with 8 steps
+#: a frame failing the same way; at 10 both run through all 600 frames, no crossing (122 %
+#: and 135 % max strain, the twist's own)
+ZONE_PASSES = 10
 _DEEP = wp.constant(FAILSAFE_GAP)
 #: vertices of the rest mesh closer than this share of the thickness (and not the same vertex)
 #: are refused: a seam written twice (`SelfCollision`); they would start inside every gap
@@ -1017,8 +1027,8 @@ class SelfCollision:
         iterations: Jacobi projection rounds per detection (default 4).
         capacity: record entries per detection (default ``16 * (vertices + edges)``); more are
             counted in ``stats["self_overflow"]``.
-        zone_passes: detections that grow the rigid impact zones (default 3; 0: the whole
-            cloth returns to its start whenever the rounds leave a path too close).
+        zone_passes: detections that grow the rigid impact zones (default `ZONE_PASSES`; 0:
+            the whole cloth returns to its start whenever the rounds leave a path too close).
         broadphase: ``"bvh"`` (swept-box BVHs refitted each step) or ``"grid"`` (hash grids of
             the box centres rebuilt each step); both find every pair whose swept boxes overlap
             (`warp_cloth.collision.broadphase`).
@@ -1034,7 +1044,8 @@ class SelfCollision:
     """
 
     def __init__(self, model, thickness: float, rounds: int = 4, iterations: int = 4,
-                 capacity: int | None = None, broadphase: str = "bvh", zone_passes: int = 3,
+                 capacity: int | None = None, broadphase: str = "bvh",
+                 zone_passes: int | None = None,
                  clearance: float = 4.0, incremental: bool = True):
         self.model = model
         self.device = d = model.device
@@ -1062,7 +1073,7 @@ class SelfCollision:
         self.counters = wp.zeros(len(STAT_KEYS), dtype=int, device=d)
         self.totals = wp.zeros(len(STAT_KEYS), dtype=int, device=d)  # summed over all steps
         self.zones = ImpactZones(model)
-        self.zone_passes = int(zone_passes)
+        self.zone_passes = ZONE_PASSES if zone_passes is None else int(zone_passes)
         if self.zone_passes < 0:
             raise ValueError("self-collision zone_passes must be >= 0")
         self.done = wp.zeros(1, dtype=int, device=d)
