@@ -443,9 +443,8 @@ class Scene:
                         why = ("its steps tangle the cloth everywhere: an unstable step; more "
                                "substeps, or a smaller step, hold it")
                         if locked >= FROZEN_FRAMES:
-                            # (the 16 x 16 twist from frame 258 under implicit Euler, 438 under
-                            # PD: with 8 times the steps too; 24 x 24: 341; the default 49 x 49
-                            # runs through)
+                            # (the 16 x 16 twist from frame 287 under implicit Euler, with 8
+                            # times the steps too; the default 49 x 49 runs through)
                             why = (f"run again with up to {self.substeps << self.retries} "
                                    "steps, each froze too: a step still far past the solver's "
                                    "stable one (explicit Euler: let it choose its substeps), or "
