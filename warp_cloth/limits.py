@@ -559,8 +559,11 @@ class _JacobiLimit:
                 stage, x_start = self._contact
                 # with the self-contacts a position-based solver's iterations projected this
                 # step (`CollisionStage.iter_live`)
-                stage.project_positions(state.x, x_start, dt, state.time,
-                                        self_contacts=getattr(stage, "iter_live", False))
+                live = getattr(stage, "iter_live", False)
+                stage.project_positions(state.x, x_start, dt, state.time, self_contacts=live)
+                if not live and hasattr(stage, "project_self_response"):
+                    # the last self-collision response's contacts (none without it)
+                    stage.project_self_response(state.x, x_start)
         self._check(state.x)
         launch(limit_loop_kernel, 1, [self._counts, self._excess, self.iterations, 0, k],
                device=self.device)

@@ -85,3 +85,18 @@ def steady_frame_args(contact, empty):
         u, w, c = contact.frame
         return contact.steady, wp.vec3(*u), wp.vec3(*w), wp.vec3(*c)
     return empty, zero, zero, zero
+
+
+@wp.kernel
+def after_begin_kernel(after: wp.array(dtype=wp.int32)):
+    """`Solver._after_round`'s loop starts: one round, none run."""
+    after[0] = 1
+    after[1] = 0
+
+
+@wp.kernel
+def after_round_kernel(moved: wp.array(dtype=wp.int32), after: wp.array(dtype=wp.int32),
+                       rounds: int):
+    """After a round: another while the limits' pass moved anything and ``rounds`` allow."""
+    after[1] = after[1] + 1
+    after[0] = wp.where(moved[0] != 0 and after[1] < rounds, 1, 0)
