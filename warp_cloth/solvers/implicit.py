@@ -443,8 +443,8 @@ GUARD_KE_REL = 1.0e-6
 #: checked after each)
 ENERGY_GUARD_ROUNDS = 2
 
-#: a contact step whose Newton reaches its cap while its last update still moved some vertex
-#: more than the collision thickness goes on, in rounds of a quarter of ``newton_iterations``,
+#: a step with a collision stage whose Newton reaches its cap while its last update still moved
+#: some vertex more than the collision thickness goes on, in rounds of a quarter of ``newton_iterations``,
 #: up to this many times ``newton_iterations`` more (``stats["impact_steps"]``). Such an iterate
 #: is far from the step's solution (a landing at speed: penalty and springs still trading
 #: centimetres), and the contacts the solve took from the predicted path no longer describe it;
@@ -1432,7 +1432,7 @@ class ImplicitEuler(Solver):
         return max(self._eps_cache, GUARD_KE_REL * getattr(self, "_ke0", 0.0))
 
     def _impact_move(self, coupling):
-        """The largest last Newton update (m) with which a contact step at its cap stops
+        """The largest last Newton update (m) with which a step at its cap stops
         (`IMPACT_ROUNDS`): the collision thickness (the self-contacts' where that is smaller);
         None without a collision stage."""
         if coupling is None:
