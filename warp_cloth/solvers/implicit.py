@@ -443,7 +443,7 @@ GUARD_KE_REL = 1.0e-6
 #: checked after each)
 ENERGY_GUARD_ROUNDS = 2
 
-#: a step with a collision stage whose Newton reaches its cap while its last update still moved
+#: a step with contact entries whose Newton reaches its cap while its last update still moved
 #: some vertex more than the collision thickness goes on, in rounds of a quarter of ``newton_iterations``,
 #: up to this many times ``newton_iterations`` more (``stats["impact_steps"]``). Such an iterate
 #: is far from the step's solution (a landing at speed: penalty and springs still trading
@@ -1177,7 +1177,7 @@ class ImplicitEuler(Solver):
         for k in range(self._k_total):
             if k >= cap:  # Newton reached its cap above its tolerance
                 if (impact is not None and moved > impact and k < K * (1 + IMPACT_ROUNDS)
-                        and not extended):
+                        and not extended and (impact_more or not self._free_step())):
                     cap += max(1, K // 4)
                     if impact_more == 0:  # the solve's self-contacts from the path it took
                         coupling.detect_self(self.x_prev, x)
@@ -1431,8 +1431,12 @@ class ImplicitEuler(Solver):
             self._eps_cache = max(GUARD_EPS * mg, 1.0e-9)
         return max(self._eps_cache, GUARD_KE_REL * getattr(self, "_ke0", 0.0))
 
+    def _free_step(self) -> bool:
+        """This step has no contact entries (`ContactCoupling.mark_free`; a host read)."""
+        return int(self._free.numpy()[0]) == 1
+
     def _impact_move(self, coupling):
-        """The largest last Newton update (m) with which a step at its cap stops
+        """The largest last Newton update (m) with which a contact step at its cap stops
         (`IMPACT_ROUNDS`): the collision thickness (the self-contacts' where that is smaller);
         None without a collision stage."""
         if coupling is None:
