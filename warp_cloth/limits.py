@@ -78,6 +78,7 @@ import math
 import numpy as np
 import warp as wp
 
+from .collision.features import inelastic_velocity
 from .tethers import PinStretch, model_tether_anchors, tether_kernel
 from .util import launch, positive_finite
 
@@ -360,12 +361,7 @@ def limit_apply_kernel(
         if inelastic == 0:
             v[i] = v[i] + dx * inv_dt
         else:
-            d = wp.length(dx)
-            if d > 0.0:
-                n = dx / d
-                vn = wp.dot(v[i], n)
-                if vn < 0.0:
-                    v[i] = v[i] - vn * n
+            v[i] = inelastic_velocity(v[i], dx, wp.vec3(0.0))
     delta[i] = wp.vec3(0.0)
     count[i] = 0.0
 

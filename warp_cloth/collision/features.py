@@ -594,6 +594,20 @@ def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.v
 
 
 @wp.func
+def inelastic_velocity(v: wp.vec3, d: wp.vec3, ws: wp.vec3):
+    """The velocity of a vertex corrected by ``d``: it loses the part that approached along
+    ``d`` (relative to a surface moving at ``ws``) and gains nothing (`inelastic_apply_kernel`;
+    the area limit's blend too, `limits.limit_apply_kernel`)."""
+    l = wp.length(d)
+    if l > 0.0:
+        u = d / l
+        a = wp.dot(v - ws, u)
+        if a < 0.0:
+            return v - a * u
+    return v
+
+
+@wp.func
 def inelastic_apply_rel(i: int, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
                         acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int), ws: wp.vec3):
     """`inelastic_apply_kernel` for vertex ``i``, the approach taken relative to a surface
@@ -602,12 +616,7 @@ def inelastic_apply_rel(i: int, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp
     if c > 0:
         d = acc[i] / float(c)
         x[i] = x[i] + d
-        l = wp.length(d)
-        if l > 0.0:
-            u = d / l
-            a = wp.dot(v[i] - ws, u)
-            if a < 0.0:
-                v[i] = v[i] - a * u
+        v[i] = inelastic_velocity(v[i], d, ws)
         acc[i] = wp.vec3(0.0)
         cnt[i] = 0
 

@@ -204,6 +204,10 @@ class CollisionStage:
                             if self.features.active else None)
         # entries that did not fit, as last reported (`frame_end`), and what a regrown `record`
         # must tell (a solve's coupling sizes its own arrays by it: `on_record_regrown`)
+        # `_project_self`'s violation counts (not read) and empty "moved" array, made here:
+        # the projections run inside steps
+        self._self_scratch = wp.zeros(2, dtype=int, device=self.device)
+        self._no_vec = wp.zeros(0, dtype=wp.vec3, device=self.device)
         self._dropped_seen = [0, 0]
         self._regrow_listeners = []
         self._restart_listeners = []
@@ -381,13 +385,18 @@ class CollisionStage:
             if self.pair_record is not None:
                 self.features.project_positions(x, x_start, self.pair_record, dt=dt)
         if self_contacts:
-            m, d = self.model, self.device
-            launch(jacobi_project_kernel, self._iter_threads,
-                   [self.iter_record, 0, x, m.inv_mass, self._iter_acc, self._iter_cnt,
-                    self._iter_scratch, RESOLVE_TOL * self.self_collision.thickness,
-                    self._iter_threads, self._no_vec, x_start], device=d)
-            launch(position_apply_kernel, m.num_vertices,
-                   [x, self._iter_acc, self._iter_cnt, self._no_vec, 0.0], device=d)
+            self._project_self(self.iter_record, self._iter_threads, self._iter_acc,
+                               self._iter_cnt, x, x_start)
+
+    def _project_self(self, rec, threads, acc, cnt, x, x_start) -> None:
+        """One Jacobi round of the self-contact record ``rec``, positions only (an entry that
+        started closer than its constraint held where it started, `jacobi_project_kernel`)."""
+        m, d = self.model, self.device
+        launch(jacobi_project_kernel, threads,
+               [rec, 0, x, m.inv_mass, acc, cnt, self._self_scratch,
+                RESOLVE_TOL * self.self_collision.thickness, threads, self._no_vec, x_start],
+               device=d)
+        launch(position_apply_kernel, m.num_vertices, [x, acc, cnt, self._no_vec, 0.0], device=d)
 
     def project_self_response(self, x, x_start) -> None:
         """One Jacobi projection, positions only, of the contacts the last self-collision
@@ -399,17 +408,8 @@ class CollisionStage:
         edges at 1.24 % (PD) and 1.23 % (explicit Euler). An entry that started closer than its
         constraint is held where it started (``x_start``), as in `project_positions`."""
         sc = self.self_collision
-        if sc is None:
-            return
-        m, d = self.model, self.device
-        if getattr(self, "_resp_scratch", None) is None:
-            self._resp_scratch = wp.zeros(2, dtype=int, device=d)
-            self._resp_no_vec = wp.zeros(0, dtype=wp.vec3, device=d)
-        launch(jacobi_project_kernel, sc.threads,
-               [sc.record, 0, x, m.inv_mass, sc.acc, sc.cnt, self._resp_scratch,
-                RESOLVE_TOL * sc.thickness, sc.threads, self._resp_no_vec, x_start], device=d)
-        launch(position_apply_kernel, m.num_vertices,
-               [x, sc.acc, sc.cnt, self._resp_no_vec, 0.0], device=d)
+        if sc is not None:
+            self._project_self(sc.record, sc.threads, sc.acc, sc.cnt, x, x_start)
 
     def use_self_iterations(self) -> bool:
         """Get ready for ``self_contacts`` in `begin_iterations` / `project_positions` (a
@@ -424,9 +424,7 @@ class CollisionStage:
             self._iter_threads = record_threads(sc.capacity, d)
             self._iter_acc = wp.zeros(n, dtype=wp.vec3, device=d)
             self._iter_cnt = wp.zeros(n, dtype=int, device=d)
-            self._iter_scratch = wp.zeros(2, dtype=int, device=d)
             self._iter_dropped = wp.zeros(1, dtype=int, device=d)  # over all steps
-            self._no_vec = wp.zeros(0, dtype=wp.vec3, device=d)
         return True
 
     #: the self-contacts of a position-based solver's iterations (`use_self_iterations`)

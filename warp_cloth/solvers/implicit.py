@@ -1028,7 +1028,7 @@ class ImplicitEuler(Solver):
             self._stats["factor_fallbacks"] = self.linear.fallbacks
         if self._stats.get("smoothing_sweeps") and self._coupling is not None:
             # the sweeps ran only if the step had no contact entries (a device flag)
-            self._stats["smoothing_sweeps"] *= int(self._free.numpy()[0])
+            self._stats["smoothing_sweeps"] *= int(self._free_step())
         return self._stats
 
     @stats.setter
@@ -1284,7 +1284,7 @@ class ImplicitEuler(Solver):
             self._guard["extended"] += 1
         # a step with a collision stage but no contact entries measures its whole energy
         free = guard and not measured and (coupling is None
-                                           or int(self._free.numpy()[0]) == 1)
+                                           or self._free_step())
         if guard and not measured and (extended or free):
             gain = self._energy_gain(x, state.v, dt)
             if gain > self._guard_eps:
@@ -1456,7 +1456,7 @@ class ImplicitEuler(Solver):
         if self.initial_guess == "velocity":
             return True
         return (self.initial_guess == "auto" and coupling is not None
-                and int(self._free.numpy()[0]) == 0)
+                and not self._free_step())
 
     def _steady_step(self) -> bool:
         """The step has moving obstacles, and they run in their steady frame (one host read)."""
