@@ -269,3 +269,32 @@ def test_strain_limit_holds_with_self_collision_on_the_stack():
     stats = scene.run(None, quiet=True, energy=False, check_intersections=True)
     assert stats.crossing_frames == 0
     assert stats.max_strain <= 0.011 + 2e-5, stats.max_strain
+
+
+def test_after_contact_rounds_that_run_out_are_reported(monkeypatch):
+    """The limits' pass after contact and the self-collision response alternate up to
+    `AFTER_CONTACT_ROUNDS` rounds; a step whose last round still moved the cloth may leave a
+    limit broken and is counted and reported, not dropped. With one round allowed, the stack's
+    landing (the pass moves edges the response stretched) runs out in some step: a message and
+    the solver's ``after_contact_short_steps``; at the default fewer steps run out."""
+    import warp_cloth.solvers.base as base
+    from warp_cloth.contact_scenes import stack
+
+    def run(rounds):
+        monkeypatch.setattr(base, "AFTER_CONTACT_ROUNDS", rounds)
+        scene = stack(solver="pd", res=12, sheets=3, frames=40,
+                      corrections=[lambda m: StrainLimit(m, 0.0, 1.01)])
+        state = scene.model.state()
+        scene.collision.plan(scene.substeps)
+        msgs = []
+        for _ in range(40):
+            for _ in range(scene.substeps):
+                scene.solver.step(state, scene.dt)
+            msgs += [m for m in scene.solver.frame_end() if "after contact" in str(m)]
+        return msgs, scene.solver.after_contact_short_steps
+
+    msgs, short = run(1)
+    assert short > 0 and msgs, (short, msgs)
+    assert "after 1 rounds" in str(msgs[0])
+    msgs8, short8 = run(8)
+    assert short8 < short, (short8, short)

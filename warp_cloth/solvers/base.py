@@ -112,8 +112,9 @@ class Solver:
         if getattr(self, "_x_mid", None) is None:
             self._x_mid = wp.zeros(self.model.num_vertices, dtype=wp.vec3, device=self.device)
             self._limit_moved = wp.zeros(1, dtype=wp.int32, device=self.device)
-            # [another round, rounds run] (`_after_round`)
-            self._after = wp.zeros(2, dtype=wp.int32, device=self.device)
+            # [another round, rounds run, steps that ran out of rounds] (`_after_round`)
+            self._after = wp.zeros(3, dtype=wp.int32, device=self.device)
+            self._after_short_seen = 0
 
     def _self_again_prepare(self, state) -> None:
         """Before the limits' pass after contact: the positions it starts from, and its flag."""
@@ -136,7 +137,7 @@ class Solver:
                 c.moved_into(self._limit_moved)
         wp.capture_if(self._limit_moved, self._self_again, state=state, dt=dt, sc=sc)
         launch(common.after_round_kernel, 1, [self._limit_moved, self._after,
-                                              AFTER_CONTACT_ROUNDS], device=self.device)
+                                              int(AFTER_CONTACT_ROUNDS)], device=self.device)
 
     def _self_again(self, state, dt, sc) -> None:
         """The self-collision response on the path the limits' pass after contact moved the
@@ -257,11 +258,26 @@ class Solver:
         and each correction's (a limit that ran out of sweeps). Host reads, once a frame: the
         scene runner calls it after every frame and prints each message as a warning."""
         out = list(self._frame_messages())
+        after = getattr(self, "_after", None)
+        if after is not None:  # `_after_round`'s loop ran out in some step
+            short = int(after.numpy()[2])
+            new, self._after_short_seen = short - self._after_short_seen, short
+            self.after_contact_short_steps = short
+            if new > 0:
+                out.append(f"the limits' pass after contact still moved the cloth after "
+                           f"{AFTER_CONTACT_ROUNDS} rounds with the self-collision response in "
+                           f"{new} step(s): the limits may be left broken there (the response "
+                           f"came last: no crossing); use more substeps")
         for c in self.corrections:
             fe = getattr(c, "frame_end", None)
             if fe is not None:
                 out.extend(fe())
         return out
+
+    #: steps (over the run, as of the last `frame_end`) whose rounds of the limits' pass and
+    #: the self-collision response after contact ran out (`AFTER_CONTACT_ROUNDS`) while the
+    #: pass still moved the cloth: each frame with new ones gets a message
+    after_contact_short_steps = 0
 
     def _frame_messages(self) -> list:
         return []
