@@ -1799,3 +1799,105 @@ def test_impact_zones_grow_along_a_chain_before_the_cloth_returns_to_its_start()
     assert 0.00125 <= moved.mean() < 0.0014  # one plate's 10 mm over eight, and the round's
     st, moved = resolve(zone_passes=3)
     assert st["self_fallback_all"] == 1 and np.allclose(moved, 0.0)  # back to the start
+
+
+def _full_entries(sc):
+    """`_entries` with each entry's normal and weights (rounded: float32 from float64)."""
+    k = int(sc.record.count.numpy()[0])
+    r = sc.record
+    return sorted((int(kd), *map(int, v), *np.round(n, 5), *np.round(w, 5)) for kd, v, n, w in
+                  zip(r.kind.numpy()[:k], r.vertex.numpy()[:k], r.normal.numpy()[:k],
+                      r.weight.numpy()[:k]))
+
+
+def test_candidate_lists_detect_what_the_bvhs_detect():
+    """Detections by the candidate lists (`SelfCollision._query_listed`: pairs listed by one
+    BVH traversal with boxes grown by the reach, tested again with each detection's own
+    boxes) find exactly the contacts of a BVH traversal per detection (``candidate_reach=0``),
+    normals and weights included, on a crumpled sheet: at the build, after every vertex moved
+    by less than the reach (no new build), past it (a new build), with a larger gap (a new
+    build), with only some vertices marked (`_detect_moved`), and when a build does not fit
+    its room (the BVHs detect; the lists grow at the frame's end, a recorded graph is
+    recorded again)."""
+    import warp as wp
+
+    from warp_cloth.collision.self_collision import CANDIDATE_REACH, SelfCollision
+
+    assert CANDIDATE_REACH > 0
+    model, rng = _crumpled(res=8, spread=0.04)
+    h = 0.03
+    x0 = model.mesh.vertices
+    x1 = x0 + rng.normal(0, 0.02, x0.shape)
+    lists, plain = SelfCollision(model, h), SelfCollision(model, h, candidate_reach=0)
+    assert plain.candidate_stats() == {}
+    reach = lists._cand_reach
+    assert reach == pytest.approx(CANDIDATE_REACH * h)
+
+    def both(a, b, gap, moved=None):
+        out = []
+        for sc in (lists, plain):
+            sc.record.count.zero_()
+            a_ = wp.array(a, dtype=wp.vec3, device="cpu")
+            b_ = wp.array(b, dtype=wp.vec3, device="cpu")
+            if moved is None:
+                sc.detect(a_, b_, gap, sc.record)
+            else:
+                sc._moved_round.assign(moved)
+                sc._detect_moved(a_, b_, gap)
+            out.append(_full_entries(sc))
+        assert out[0] == out[1]
+        assert len(out[0]) > 20
+        return lists.candidate_stats()["builds"]
+
+    assert both(x0, x1, h) == 1
+    step = rng.uniform(-0.9, 0.9, x0.shape) * reach  # every vertex, within the reach
+    assert both(x0 + step, x1 - step, h) == 1
+    moved = (rng.uniform(size=len(x0)) < 0.3).astype(np.int32)
+    assert both(x0, x1 + step, h, moved) == 1
+    far = x1.copy()
+    far[5, 2] = max(x0[5, 2], x1[5, 2]) + 1.5 * reach  # one vertex past its path's box
+    assert both(x0, far, h) == 2
+    assert both(x0, far, 1.5 * h) == 3  # a larger gap than built for
+    assert both(x0, far, h) == 3  # the lists serve the smaller gap too
+    st = lists.candidate_stats()
+    assert st["overflows"] == 0 and st["most_ee"] > st["most_vt"] > 0
+    lists._cand_alloc(10, 10)  # too little room: the build overflows, the BVHs detect
+    assert both(x0, x1, h) == 4
+    st = lists.candidate_stats()
+    assert st["overflows"] == 1
+    assert [m for m in lists.frame_end() if m[1]] == [(None, True)]  # grown; graphs again
+    st = lists.candidate_stats()
+    assert st["room_vt"] >= st["most_vt"] and st["room_ee"] >= st["most_ee"]
+    assert both(x0, x1, h) == 5 and lists.candidate_stats()["overflows"] == 1
+    assert [m for m in lists.frame_end() if m[1]] == []
+
+
+def test_candidate_lists_cover_pairs_that_come_close_within_the_reach():
+    """Two sheets farther apart than the gap at the lists' build (no pair close, no box
+    overlap at the gap alone), then each moved 0.9 reach toward the other, a detection
+    without a build: they now come within the gap, and the lists (built with boxes grown by
+    the reach) hold those pairs: the BVH traversal's contacts exactly."""
+    import warp as wp
+
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    h = 0.01
+    reach = 0.5 * h
+    model = _two_sheets(h + 1.7 * reach)
+    lists = SelfCollision(model, h, candidate_reach=0.5)
+    plain = SelfCollision(model, h, candidate_reach=0)
+    x = model.mesh.vertices
+    n = len(x) // 2
+    closer = x.copy()
+    closer[:n, 1] += 0.9 * reach
+    closer[n:, 1] -= 0.9 * reach
+    out = []
+    for sc in (lists, plain):
+        for a, b in ((x, x), (closer, closer)):
+            sc.record.count.zero_()
+            sc.detect(wp.array(a, dtype=wp.vec3, device="cpu"),
+                      wp.array(b, dtype=wp.vec3, device="cpu"), h, sc.record)
+            out.append(_full_entries(sc))
+    assert out[0] == out[2] == []
+    assert len(out[3]) > 50 and out[1] == out[3]
+    assert lists.candidate_stats()["builds"] == 1

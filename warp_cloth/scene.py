@@ -406,7 +406,7 @@ class Scene:
                         retried, msgs = self._stage_frame_end(stage, state, snap)
                         retried_frames += retried > 0
                         for kind, msg, regrown in msgs:
-                            if not quiet:
+                            if not quiet and msg is not None:
                                 bar.note(f"{kind}: frame {frame}: {msg}")
                             if regrown:
                                 graph = None  # arrays were reallocated: record the graph again

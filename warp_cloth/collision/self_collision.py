@@ -8,6 +8,14 @@ Per step, on the cloth's path from ``x_start`` to ``x`` (``physics.md`` 2.18-2.2
    the same way, so no pair whose paths come within the gap is missed (their half-inflated
    boxes overlap). Topological neighbours are skipped (a vertex and its own triangles, edges that
    share a vertex), and each edge pair is tested once (the lower edge index queries).
+   **Candidate lists** (BVH broad phase, ``candidate_reach``): the traversal lists its pairs
+   with every box grown by a reach (the thickness by default) and the detections that
+   follow test the listed pairs with their own boxes, until a vertex's path start or end
+   lies farther than the reach outside the box of its build path: the element boxes of such a
+   detection lie inside the build's grown boxes, so every pair whose boxes overlap was listed
+   and the contacts are those of a traversal (tested). A step's solve detection, its
+   response's rounds and its impact-zone passes (and PBD's detections in its iterations) then
+   share one traversal, and so do steps in which the cloth moves little.
 2. **Narrow phase**: the continuous vertex-triangle and edge-edge tests of
    `warp_cloth.collision.geometry` (conservative advancement in float64) with the thickness as
    minimum separation: a pair that comes within the thickness at any time of the step, or ends
@@ -68,8 +76,8 @@ import numpy as np
 import warp as wp
 
 from ..util import launch
-from .broadphase import (ClothBroadPhase, boxes_overlap, cloth_bounds_kernel, grid_radius,
-                         padded, vertex_bounds_kernel, vertex_box)
+from .broadphase import (BOX_ROUNDING, ClothBroadPhase, boxes_overlap, cloth_bounds_kernel,
+                         grid_radius, padded, vertex_bounds_kernel, vertex_box)
 from .features import inelastic_apply, inelastic_apply_kernel, jacobi_project_kernel, pin_held
 from .impact_zones import ImpactZones
 from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_distance, ee_impact,
@@ -341,6 +349,133 @@ def self_vt_bvh_kernel(bvh: wp.uint64, x0: wp.array(dtype=wp.vec3), x1: wp.array
     t = int(0)
     while wp.bvh_query_next(q, t):
         vt_pair(v, t, x0, x1, tris, gap, sep, inv_mass, rest, rec, pairs, npairs)
+
+
+#: candidate lists (`SelfCollision`'s ``candidate_reach``): a list built from the BVHs serves
+#: every later detection whose path ends (start and end) stay within this many thicknesses of
+#: the build's, per axis
+CANDIDATE_REACH = 1.0
+#: ... with room for this many pairs per vertex (vertex-triangle) and per edge (edge-edge); a
+#: build that needs more grows the lists at the frame's end and detects by the BVHs meanwhile
+CANDIDATE_ROOM = 24
+
+
+@wp.func
+def any_active(active: wp.array(dtype=int), a: int, b: int, c: int, d: int):
+    """No ``active`` set (empty), or one of the four vertices in it."""
+    if active.shape[0] == 0:
+        return True
+    return active[a] + active[b] + active[c] + active[d] != 0
+
+
+@wp.kernel
+def cand_begin_kernel(gap: float, built_gap: wp.array(dtype=float),
+                      flags: wp.array(dtype=int)):
+    """A detection with candidate lists starts: rebuild (``flags[0]``) unless they were built
+    (``built_gap[0] >= 0``) for at least this ``gap``."""
+    flags[0] = wp.where(built_gap[0] < 0.0 or gap > built_gap[0], 1, 0)
+
+
+@wp.kernel
+def cand_check_kernel(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                      b0: wp.array(dtype=wp.vec3), b1: wp.array(dtype=wp.vec3), reach: float,
+                      flags: wp.array(dtype=int)):
+    """``flags[0] = 1`` (rebuild) when vertex ``i``'s start or end lies outside the box of its
+    build path (start and end) grown by ``reach``, less a float32 rounding allowance: inside
+    it, every swept box of this detection lies inside the build's boxes grown by ``reach``
+    (a span's path from its start and the steps' paths inside it share one build)."""
+    i = wp.tid()
+    p = x0[i]
+    r = x1[i]
+    lo = wp.min(b0[i], b1[i])
+    hi = wp.max(b0[i], b1[i])
+    far = False
+    for k in range(3):
+        slack = 4.0 * BOX_ROUNDING * (wp.abs(p[k]) + wp.abs(r[k]) + wp.abs(lo[k]) + wp.abs(hi[k]))
+        if (p[k] < lo[k] - reach + slack or p[k] > hi[k] + reach - slack
+                or r[k] < lo[k] - reach + slack or r[k] > hi[k] + reach - slack):
+            far = True
+    if far:
+        flags[0] = 1
+
+
+@wp.kernel
+def cand_built_kernel(n: wp.array(dtype=int), cap_vt: int, cap_ee: int, gap: float,
+                      built_gap: wp.array(dtype=float), flags: wp.array(dtype=int),
+                      stats: wp.array(dtype=int)):
+    """After a build: the lists hold every pair (``flags[1]``: use them, ``built_gap[0]``:
+    the gap they serve) or one overflowed (``flags[2]``: detect by the BVHs; ``built_gap[0]``
+    -1 so the next detection builds again; ``stats[1]`` counts it, ``stats[2]`` keeps the
+    most pairs asked for, ``stats[3]`` the most edge pairs). ``stats[0]`` counts builds."""
+    stats[0] = stats[0] + 1
+    if n[0] > cap_vt or n[1] > cap_ee:
+        flags[1] = 0
+        flags[2] = 1
+        built_gap[0] = -1.0
+        stats[1] = stats[1] + 1
+    else:
+        flags[1] = 1
+        flags[2] = 0
+        built_gap[0] = gap
+    stats[2] = wp.max(stats[2], n[0])
+    stats[3] = wp.max(stats[3], n[1])
+
+
+@wp.kernel
+def cand_use_kernel(built_gap: wp.array(dtype=float), flags: wp.array(dtype=int)):
+    """No rebuild needed: use the lists."""
+    if flags[0] == 0:
+        flags[1] = 1
+        flags[2] = 0
+
+
+@wp.kernel
+def vt_list_kernel(pairs: wp.array(dtype=wp.vec2i), n: wp.array(dtype=int),
+                   lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3),
+                   x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                   tris: wp.array2d(dtype=wp.int32), gap: float, sep: float,
+                   inv_mass: wp.array(dtype=float), rest: wp.array(dtype=wp.vec4),
+                   done: wp.array(dtype=int), active: wp.array(dtype=int), rec: ContactRecord,
+                   no_pairs: wp.array(dtype=wp.vec2i), npairs: wp.array(dtype=int),
+                   num_threads: int):
+    """The listed vertex-triangle pairs whose swept boxes, inflated by ``gap / 2``, overlap
+    (the BVH query's own test: the same candidates), with an active vertex when an ``active``
+    set is given, tested as `self_vt_bvh_kernel` does."""
+    t0 = wp.tid()
+    if done[0] != 0:
+        return
+    count = wp.min(n[0], pairs.shape[0])
+    for q in range(t0, count, num_threads):
+        p = pairs[q]
+        v = p[0]
+        t = p[1]
+        if any_active(active, v, tris[t, 0], tris[t, 1], tris[t, 2]):
+            lo, hi = vertex_box(x0, x1, v, 0.5 * gap)
+            if boxes_overlap(lo, hi, lowers[t], uppers[t]):
+                vt_pair(v, t, x0, x1, tris, gap, sep, inv_mass, rest, rec, no_pairs, npairs)
+
+
+@wp.kernel
+def ee_list_kernel(pairs: wp.array(dtype=wp.vec2i), n: wp.array(dtype=int),
+                   lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3),
+                   x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+                   edges: wp.array2d(dtype=wp.int32), gap: float, sep: float,
+                   inv_mass: wp.array(dtype=float), rest: wp.array(dtype=wp.vec4),
+                   done: wp.array(dtype=int), active: wp.array(dtype=int), rec: ContactRecord,
+                   no_pairs: wp.array(dtype=wp.vec2i), npairs: wp.array(dtype=int),
+                   num_threads: int):
+    """The listed edge-edge pairs as `vt_list_kernel` (`self_ee_bvh_kernel`'s test)."""
+    t0 = wp.tid()
+    if done[0] != 0:
+        return
+    count = wp.min(n[1], pairs.shape[0])
+    for q in range(t0, count, num_threads):
+        p = pairs[q]
+        e = p[0]
+        f = p[1]
+        if boxes_overlap(lowers[e], uppers[e], lowers[f], uppers[f]):
+            if any_active(active, edges[e, 0], edges[e, 1], edges[f, 0], edges[f, 1]):
+                ee_pair(e, f, x0, x1, edges, gap, sep, inv_mass, rest, rec, no_pairs, npairs)
 
 
 @wp.kernel
@@ -1041,12 +1176,22 @@ class SelfCollision:
             the last round's projection moved, and keep the other entries (their paths did not
             change, so a detection would find them again; BVH broad phase). Default True;
             False detects every pair in every round (the same contacts, for comparison).
+        candidate_reach: in thicknesses (default `CANDIDATE_REACH`; BVH broad phase): the
+            detections test pairs from candidate lists built by the BVHs with boxes grown by
+            this reach, built again only once a vertex's path start or end has moved farther
+            than it from the box of the build's path (or a larger gap is asked for): a step's
+            solve, response
+            rounds and impact-zone passes, and the next steps while the cloth moves little,
+            share one traversal. The same contacts as without (every pair whose boxes overlap
+            at the detection is listed: its boxes lie inside the build's grown ones). 0: no
+            lists, every detection traverses the BVHs.
     """
 
     def __init__(self, model, thickness: float, rounds: int = 4, iterations: int = 4,
                  capacity: int | None = None, broadphase: str = "bvh",
                  zone_passes: int | None = None,
-                 clearance: float = 4.0, incremental: bool = True):
+                 clearance: float = 4.0, incremental: bool = True,
+                 candidate_reach: float | None = None):
         self.model = model
         self.device = d = model.device
         self.thickness = float(thickness)
@@ -1105,6 +1250,29 @@ class SelfCollision:
         self.clearance = c * self.thickness
         self._allowances = c > 1.01
         self.allowances = False  # in use (`plan`)
+        # candidate lists (`_query_listed`; BVH broad phase)
+        self._cand = None
+        reach = CANDIDATE_REACH if candidate_reach is None else candidate_reach
+        try:
+            reach = float(reach)
+        except (TypeError, ValueError):
+            reach = float("nan")
+        if not (reach >= 0.0 and reach < float("inf")):
+            raise ValueError(f"self-collision candidate_reach must be a number of thicknesses "
+                             f">= 0, got {candidate_reach!r}")
+        if reach > 0.0 and self.broad.method == "bvh":
+            self._cand = True
+            self._cand_reach = reach * self.thickness
+            self._cand_gap_max = self.thickness
+            self._cand_gap = wp.zeros(1, dtype=float, device=d)
+            self._cand_alloc(CANDIDATE_ROOM * n, CANDIDATE_ROOM * self.broad.num_edges)
+            self._cand_x0 = wp.zeros(n, dtype=wp.vec3, device=d)
+            self._cand_x1 = wp.zeros(n, dtype=wp.vec3, device=d)
+            self._cand_flags = wp.zeros(3, dtype=int, device=d)
+            self._cand_n = wp.zeros(2, dtype=int, device=d)
+            # [builds, overflowed builds, most vertex-triangle pairs, most edge-edge pairs]
+            self._cand_stats = wp.zeros(4, dtype=int, device=d)
+            self._cand_grown = 0
         # incremental rounds (`_round`): the positions a round's projection started from, the
         # vertices it moved, the device flag and a second record for the kept entries
         self._incremental = None
@@ -1154,6 +1322,17 @@ class SelfCollision:
         b, m, d = self.broad, self.model, self.device
         # ``moved`` (BVH): only the pairs with a marked vertex (`_detect_moved`)
         partial = self._in_span or moved is not None
+        if (self._cand is not None and vt and ee and vt_pairs.shape[0] == 0
+                and ee_pairs.shape[0] == 0):
+            # contacts (not a listing of candidates): by the candidate lists
+            active = self._no_int if moved is None else moved
+            if self._in_span and moved is None:
+                active = self._active
+                slack = max(0.0, 0.5 * (float(gap) - self.thickness))
+                launch(active_kernel, m.num_vertices, [x0, x1, self._allow, slack, active],
+                       device=d)
+            self._query_listed(x0, x1, gap, record, done, active)
+            return
         b.update(x0, x1, 0.5 * float(gap), vertices=partial)
         common = [x0, x1]
         if b.method == "grid":
@@ -1188,6 +1367,98 @@ class SelfCollision:
                 launch(self_ee_bvh_kernel, b.num_edges,
                        [b.edge_bvh.id, *common, b.edges, gap, self.thickness, m.inv_mass,
                         self.rest, done, active, record, ee_pairs, npairs], device=d)
+
+    def _query_listed(self, x0, x1, gap, record, done, active):
+        """`_query` by the candidate lists: built from the BVHs (boxes grown by the reach
+        ``_cand_reach`` and for the largest gap asked so far) when a vertex's start or end left
+        the reach of the last build's or the gap is larger, then the listed pairs whose boxes
+        for this detection overlap are tested. A build that overflowed detects by the BVHs
+        (`_query_bvh`). Device-side choices (`wp.capture_if`): capturable."""
+        d, n = self.device, self.model.num_vertices
+        g = float(gap)
+        self._cand_gap_max = max(self._cand_gap_max, g)
+        launch(cand_begin_kernel, 1, [g, self._cand_gap, self._cand_flags], device=d)
+        launch(cand_check_kernel, n, [x0, x1, self._cand_x0, self._cand_x1,
+                                      0.999 * self._cand_reach, self._cand_flags], device=d)
+        launch(cand_use_kernel, 1, [self._cand_gap, self._cand_flags], device=d)
+        wp.capture_if(self._cand_flags[0:1], self._cand_build, x0=x0, x1=x1)
+        wp.capture_if(self._cand_flags[1:2], self._cand_test, x0=x0, x1=x1, gap=g,
+                      record=record, done=done, active=active)
+        wp.capture_if(self._cand_flags[2:3], self._query_bvh, x0=x0, x1=x1, gap=g,
+                      record=record, done=done, active=active)
+
+    def _cand_build(self, x0, x1):
+        b, m, d = self.broad, self.model, self.device
+        g = self._cand_gap_max + 2.0 * self._cand_reach  # its half: the boxes' pad
+        b.update(x0, x1, 0.5 * g)
+        self._cand_n.zero_()
+        launch(self_vt_bvh_kernel, m.num_vertices,
+               [b.tri_bvh.id, x0, x1, b.tris, g, self.thickness, m.inv_mass, self.rest,
+                self._never, self._no_int, self.record, self._cand_vt, self._cand_n[0:1]],
+               device=d)
+        launch(self_ee_bvh_kernel, b.num_edges,
+               [b.edge_bvh.id, x0, x1, b.edges, g, self.thickness, m.inv_mass, self.rest,
+                self._never, self._no_int, self.record, self._cand_ee, self._cand_n[1:2]],
+               device=d)
+        wp.copy(self._cand_x0, x0)
+        wp.copy(self._cand_x1, x1)
+        launch(cand_built_kernel, 1, [self._cand_n, self._cand_vt.shape[0],
+                                      self._cand_ee.shape[0], self._cand_gap_max,
+                                      self._cand_gap, self._cand_flags, self._cand_stats],
+               device=d)
+
+    def _cand_test(self, x0, x1, gap, record, done, active):
+        b, m, d = self.broad, self.model, self.device
+        args = [x0, x1, None, gap, self.thickness, m.inv_mass, self.rest, done, active,
+                record, self._no_pairs, self._npairs, self._cand_threads]
+        # this detection's boxes (the BVHs' arrays; the next traversal writes its own)
+        launch(cloth_bounds_kernel, b.num_tris + b.num_edges,
+               [x0, x1, b.tris, b.edges, b.num_tris, 0.5 * float(gap), b.lowers, b.uppers,
+                b.elowers, b.euppers], device=d)
+        args[2] = b.tris
+        launch(vt_list_kernel, self._cand_threads,
+               [self._cand_vt, self._cand_n, b.lowers, b.uppers, *args], device=d)
+        args[2] = b.edges
+        launch(ee_list_kernel, self._cand_threads,
+               [self._cand_ee, self._cand_n, b.elowers, b.euppers, *args], device=d)
+
+    def _query_bvh(self, x0, x1, gap, record, done, active):
+        """`_query`'s BVH detection (a candidate build that overflowed)."""
+        b, m, d = self.broad, self.model, self.device
+        partial = active.shape[0] > 0
+        b.update(x0, x1, 0.5 * float(gap), vertices=partial)
+        launch(self_vt_bvh_kernel, m.num_vertices,
+               [b.tri_bvh.id, x0, x1, b.tris, gap, self.thickness, m.inv_mass, self.rest, done,
+                active, record, self._no_pairs, self._npairs], device=d)
+        if partial:
+            launch(self_tv_bvh_kernel, b.num_tris,
+                   [b.vertex_bvh.id, b.lowers, b.uppers, x0, x1, b.tris, gap, self.thickness,
+                    m.inv_mass, self.rest, done, active, record, self._no_pairs, self._npairs],
+                   device=d)
+        launch(self_ee_bvh_kernel, b.num_edges,
+               [b.edge_bvh.id, x0, x1, b.edges, gap, self.thickness, m.inv_mass, self.rest,
+                done, active, record, self._no_pairs, self._npairs], device=d)
+
+    def _cand_alloc(self, vt: int, ee: int) -> None:
+        """Candidate lists of ``vt`` vertex-triangle and ``ee`` edge-edge pairs (allocation:
+        outside any captured step); the next detection builds them."""
+        d = self.device
+        self._cand_vt = wp.zeros(max(int(vt), 1), dtype=wp.vec2i, device=d)
+        self._cand_ee = wp.zeros(max(int(ee), 1), dtype=wp.vec2i, device=d)
+        self._cand_threads = record_threads(max(int(vt), int(ee), 1), d)
+        self._cand_gap.fill_(-1.0)
+
+    def candidate_stats(self) -> dict:
+        """The candidate lists' counts so far (host read): ``builds``, ``overflows`` (builds
+        that did not fit: those detections ran by the BVHs), the most pairs a build listed
+        (``most_vt``, ``most_ee``) and the lists' room (``room_vt``, ``room_ee``); empty
+        without lists."""
+        if self._cand is None:
+            return {}
+        c = self._cand_stats.numpy()
+        return {"builds": int(c[0]), "overflows": int(c[1]), "most_vt": int(c[2]),
+                "most_ee": int(c[3]), "room_vt": int(self._cand_vt.shape[0]),
+                "room_ee": int(self._cand_ee.shape[0])}
 
     # ------------------------------------------------------------------ spans
     def plan(self, substeps: int, motion: float) -> None:
@@ -1544,8 +1815,9 @@ class SelfCollision:
         stable step, froze the whole cloth in every response and ran on without a word: without
         self-collision the divergence guard stops it) or in which at least that share of the
         responses returned the whole cloth to its start (both ``frame_frozen``), and dropped
-        contacts (the record's room then grows). ``(message, regrown)`` pairs; host
-        reads, once a frame (`CollisionStage.frame_end`)."""
+        contacts (the record's room then grows). ``(message, regrown)`` pairs (message None:
+        the candidate lists grew, nothing to report); host reads, once a frame
+        (`CollisionStage.frame_end`)."""
         t = self.totals.numpy()
         seen = getattr(self, "_seen", None)
         self._seen = t.copy()
@@ -1592,6 +1864,13 @@ class SelfCollision:
             self.grow(max(2 * self.capacity, self.capacity + dropped))
             out.append((f"{dropped} self-contacts did not fit the record; its room grows to "
                         f"{self.capacity} entries", True))
+        if self._cand is not None:
+            c = self._cand_stats.numpy()
+            if c[1] > self._cand_grown:  # a build did not fit: those detections used the BVHs
+                self._cand_grown = int(c[1])
+                self._cand_alloc(max(self._cand_vt.shape[0], int(1.5 * c[2])),
+                                 max(self._cand_ee.shape[0], int(1.5 * c[3])))
+                out.append((None, True))  # nothing to report; a recorded graph is recorded again
         return out
 
     def grow(self, capacity: int) -> None:
