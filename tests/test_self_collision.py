@@ -1864,7 +1864,7 @@ def test_candidate_lists_detect_what_the_bvhs_detect():
     lists._cand_alloc(10, 10)  # too little room: the build overflows, the BVHs detect
     assert both(x0, x1, h) == 4
     st = lists.candidate_stats()
-    assert st["overflows"] == 1
+    assert st["overflows"] == 1 and lists.stats["self_list_overflows"] == 1
     assert [m for m in lists.frame_end() if m[1]] == [(None, True)]  # grown; graphs again
     st = lists.candidate_stats()
     assert st["room_vt"] >= st["most_vt"] and st["room_ee"] >= st["most_ee"]

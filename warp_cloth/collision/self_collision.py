@@ -1883,8 +1883,10 @@ class SelfCollision:
 
     @property
     def stats(self) -> dict:
-        """The last step's counts, and (``*_total``) their sums over every step so far."""
+        """The last step's counts, and (``*_total``) their sums over every step so far; with
+        candidate lists, their counts so far (`candidate_stats`) as ``self_list_*``."""
         c, t = self.counters.numpy(), self.totals.numpy()
         out = {k: int(v) for k, v in zip(STAT_KEYS, c)}
         out.update({k + "_total": int(v) for k, v in zip(STAT_KEYS, t)})
+        out.update({"self_list_" + k: v for k, v in self.candidate_stats().items()})
         return out
