@@ -235,8 +235,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--retries", type=_int_at_least(0, "an integer in [0, 8]"), default=None,
                    metavar="N",
                    help="a frame in which a self-collision step failed (the whole cloth returned "
-                        "to its start or frozen into impact zones, or contacts dropped for want "
-                        "of room) runs again from its start with 2, 4, ... times the steps, up to "
+                        "to its start or frozen into impact zones, contacts dropped for want "
+                        "of room, or an edge over-stretched by the response) runs again from its start with 2, 4, ... times the steps, up to "
                         "N times (default 2; 0: off)")
     r.add_argument("--ledger", type=_frame_span, default=None, metavar="FIRST:LAST",
                    help="print where the energy of frames FIRST to LAST went, per stage of each "
