@@ -594,7 +594,10 @@ def test_feature_response_rounds_go_on_until_every_entry_holds():
     assert g.min() >= -RESOLVE_TOL * 0.005 - 1e-7, f"an entry is violated by {-g.min():.2e} m"
     s = stage.stats
     assert s["feature_unresolved_total"] == 0 and s["feature_rounds"] > 4
-    assert stage.frame_end() == []
+    # no entry left violated; lifting the patch back over the tip in one step stretches the
+    # edges around it, which is reported (`stage.STRETCH_AFTER`: the runner runs such a frame
+    # again with more steps)
+    assert [m for m, _ in stage.frame_end() if "stretched" not in m] == []
 
 
 def _pinned_edge_on_a_box_edge():

@@ -210,7 +210,7 @@ def test_a_response_that_over_stretches_runs_the_frame_again():
     floor at 30 fps, implicit Euler at its 2 steps a frame with 40 Newton iterations: its
     landing steps end the solve within a few percent, but the self-collision response (normals
     taken where pairs met, 9 cm of travel a step) left edges at up to 84 %. Such a response
-    is counted (``self_stretched``, `STRETCH_AFTER`, `STRETCH_RISE`) and the frame runs again
+    is counted (``response_stretched``, `stage.STRETCH_AFTER`, `STRETCH_RISE`) and the frame runs again
     with more steps: the landing then stays within 5 %, nothing crossing."""
     import warp_cloth as wc
     from warp_cloth.collision import CollisionStage
@@ -225,7 +225,7 @@ def test_a_response_that_over_stretches_runs_the_frame_again():
         solver.set_collision(stage)
         scene = wc.Scene(model, solver, fps=30, frames=22, retries=retries)
         st = scene.run(None, quiet=True, energy=False, check_intersections=True)
-        return st, stage.stats["self_stretched_total"]
+        return st, stage.stats["response_stretched"]
 
     st, stretched = run(2)
     assert st.crossing_frames == 0
@@ -235,16 +235,18 @@ def test_a_response_that_over_stretches_runs_the_frame_again():
 
 
 def test_stretch_check_counts_a_response_that_stretches_an_edge():
-    """`response_stretch_kernel`: an edge the response leaves past 10 % and more than 20 %
-    over its length before counts; one already stretched that the response stretches less,
-    or that ends below 10 %, does not; `frame_end` reports it and fails the frame."""
+    """`response_stretch_kernel`: an edge the solve left within 10 % that the response
+    stretches by more than 20 % of its rest length counts; a smaller rise, or an edge the solve
+    left past 10 % (the twist's own stretch), does not; `CollisionStage.frame_end` reports it
+    and fails the frame (the runner runs it again)."""
     import warp as wp
 
-    from warp_cloth.collision import self_collision as scm
+    from warp_cloth.collision import stage as stm
+    from warp_cloth.collision.obstacles import Plane
     from warp_cloth.contact_scenes import sheet_model
 
     model = sheet_model(res=2)
-    sc = SelfCollision(model, 0.005)
+    stage = stm.CollisionStage(model, [Plane()])
     x = model.mesh.vertices.astype(np.float64)
     e = model.mesh.edges[0]
     rest = np.linalg.norm(x[e[0]] - x[e[1]])
@@ -254,20 +256,21 @@ def test_stretch_check_counts_a_response_that_stretches_an_edge():
         pre, post = x.copy(), x.copy()
         pre[e[1]] = x[e[0]] + d * rest * before
         post[e[1]] = x[e[0]] + d * rest * after
-        sc._x_pre.assign(pre)
-        sc.counters.zero_()
-        wp.launch(scm.response_stretch_kernel, len(model.mesh.edges),
-                  [sc.broad.edges, sc._rest_len, sc._x_pre,
-                   wp.array(post, dtype=wp.vec3, device="cpu"), sc.counters], device="cpu")
-        return int(sc.counters.numpy()[scm.I_STRETCHED])
+        stage._x_solved.assign(pre)
+        c = wp.zeros(1, dtype=int, device="cpu")
+        wp.launch(stm.response_stretch_kernel, len(model.mesh.edges),
+                  [stage._edges, stage._rest_len, stage._x_solved,
+                   wp.array(post, dtype=wp.vec3, device="cpu"), c], device="cpu")
+        return int(c.numpy()[0])
 
     assert counted(1.0, 1.25) == 1
+    assert counted(1.09, 1.35) == 1
     assert counted(1.0, 1.15) == 0  # a rise under 20 %
-    assert counted(1.5, 1.65) == 0  # the twist's own stretch, raised a little
-    assert counted(0.9, 1.09) == 0  # ends within 10 %
-    assert sc.frame_end() == [] and sc.frame_failed == 0
-    t = sc.totals.numpy()
-    t[scm.I_STRETCHED] += 2
-    sc.totals.assign(t)
-    msgs = sc.frame_end()
-    assert sc.frame_failed == 2 and any("stretched a mesh edge" in m for m, _ in msgs)
+    assert counted(1.5, 1.9) == 0  # the twist's own stretch, raised
+    assert counted(1.12, 1.5) == 0
+    assert stage.frame_end() == [] and stage.frame_failed == 0
+    stage._stretched.fill_(2)
+    msgs = stage.frame_end()
+    assert stage.frame_failed == 1 and any("stretched 2 mesh edge" in m for m, _ in msgs)
+    assert stage.stats["response_stretched"] == 2
+    assert stage.frame_end() == [] and stage.frame_failed == 0  # reported once

@@ -236,7 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="N",
                    help="a frame in which a self-collision step failed (the whole cloth returned "
                         "to its start or frozen into impact zones, contacts dropped for want "
-                        "of room, or an edge over-stretched by the response) runs again from its start with 2, 4, ... times the steps, up to "
+                        "of room, or an edge over-stretched by the collision response) runs again from its start with 2, 4, ... times the steps, up to "
                         "N times (default 2; 0: off)")
     r.add_argument("--ledger", type=_frame_span, default=None, metavar="FIRST:LAST",
                    help="print where the energy of frames FIRST to LAST went, per stage of each "

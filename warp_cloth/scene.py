@@ -185,8 +185,9 @@ class Scene:
         capture: replay each frame's substeps as a recorded Warp graph when the solver allows.
         name: a label for progress output.
         retries: with a collision stage, a frame in which a step failed (self-collision
-            returned the whole cloth to its start or held most of it in rigid impact zones, its
-            response over-stretched an edge, `self_collision.STRETCH_AFTER`, or contacts were
+            returned the whole cloth to its start or held most of it in rigid impact zones, the
+            collision response over-stretched an edge, `collision.stage.STRETCH_AFTER`, or
+            contacts were
             dropped for want of room, `CollisionStage.frame_end`) runs again from
             its start with twice the steps, then four times, up to ``retries`` times (default
             2; 0: off), self-collision responding after every step; the failed attempts are

@@ -92,8 +92,7 @@ __all__ = ["SelfCollision"]
 CCD_ITERATIONS = 64
 #: the counters of `SelfCollision.stats`, per step (and ``*_total``: summed over all steps)
 STAT_KEYS = ("self_contacts", "self_overflow", "self_zones", "self_zone_vertices",
-             "self_fallback_all", "self_responses", "self_pinned", "self_zones_held",
-             "self_stretched")
+             "self_fallback_all", "self_responses", "self_pinned", "self_zones_held")
 # the counters the kernels write, by name (the order of STAT_KEYS is free)
 I_CONTACTS = wp.constant(STAT_KEYS.index("self_contacts"))
 I_OVERFLOW = wp.constant(STAT_KEYS.index("self_overflow"))
@@ -102,18 +101,6 @@ I_PINNED = wp.constant(STAT_KEYS.index("self_pinned"))
 I_ZONES = STAT_KEYS.index("self_zones")  # the impact zones write this slot and the next
 I_FALLBACK = STAT_KEYS.index("self_fallback_all")
 I_HELD = STAT_KEYS.index("self_zones_held")
-I_STRETCHED = STAT_KEYS.index("self_stretched")
-#: a response that leaves a mesh edge stretched past this (a fraction of its rest length) and
-#: by more than `STRETCH_RISE` over its length before the response is counted
-#: (``self_stretched``): the runner runs such a frame again with more steps (`Scene`'s
-#: ``retries``). Measured: an irregular sheet (0.1 kg/m^2, 1e5 N/m) held vertically and dropped
-#: 1.5 m onto the floor at 30 fps, implicit Euler at its 2 steps a frame: the solve ended each
-#: landing step within 1.5 %, the response's projection (normals taken where pairs met, 9 cm
-#: of travel a step) left edges at 58-84 % (11 % at 10 Newton iterations, 84 % at 40). The
-#: largest rise by a response in the built-in scenes: 6.3 % (PBD's fast twist, an edge the
-#: twist holds at 45 %), 13 % (PD twist, 240 frames, an edge at 60 %), 2.9 % (implicit stack)
-STRETCH_AFTER = wp.constant(0.10)
-STRETCH_RISE = wp.constant(0.20)
 if STAT_KEYS[I_ZONES + 1] != "self_zone_vertices":  # pragma: no cover - a layout invariant
     raise RuntimeError("STAT_KEYS: self_zone_vertices must follow self_zones")
 #: `SelfCollision.frame_end` warns (``frame_frozen``) when the rigid impact zones held this share
@@ -817,22 +804,6 @@ def accumulate_kernel(counters: wp.array(dtype=int), totals: wp.array(dtype=int)
 
 
 @wp.kernel
-def response_stretch_kernel(edges: wp.array2d(dtype=wp.int32), rest_len: wp.array(dtype=float),
-                            x_pre: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3),
-                            counters: wp.array(dtype=int)):
-    """``counters[I_STRETCHED] = 1`` when the response left edge ``e`` stretched past
-    `STRETCH_AFTER` and by more than `STRETCH_RISE` over its stretch before (``x_pre``)."""
-    e = wp.tid()
-    a = edges[e, 0]
-    b = edges[e, 1]
-    inv = 1.0 / rest_len[e]
-    after = wp.length(x[a] - x[b]) * inv
-    before = wp.length(x_pre[a] - x_pre[b]) * inv
-    if after > 1.0 + STRETCH_AFTER and after > before + STRETCH_RISE:
-        counters[I_STRETCHED] = 1
-
-
-@wp.kernel
 def deep_path_kernel(rec: ContactRecord, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
                      inv_mass: wp.array(dtype=float), violated: wp.array(dtype=int),
                      done: wp.array(dtype=int), num_threads: int):
@@ -1238,13 +1209,6 @@ class SelfCollision:
         #: each vertex's least pair share of the thickness: the spans' reach scales with it
         self._reach_share = wp.array(share, dtype=float, device=d)
         self.capacity = int(capacity or 16 * (n + self.broad.num_edges))
-        # the positions a response starts from and the edges' rest lengths (`resolve`'s
-        # stretch check, `response_stretch_kernel`)
-        self._x_pre = wp.zeros(n, dtype=wp.vec3, device=d)
-        xr = np.asarray(model.mesh.vertices, dtype=np.float64)
-        er = np.asarray(model.mesh.edges, dtype=np.int64).reshape(-1, 2)
-        self._rest_len = wp.array(np.maximum(np.linalg.norm(xr[er[:, 0]] - xr[er[:, 1]], axis=1),
-                                             1e-12).astype(np.float32), dtype=float, device=d)
         self.record = make_record(self.capacity, d)
         self.acc = wp.zeros(n, dtype=wp.vec3, device=d)
         self._no_moved = wp.zeros(0, dtype=wp.vec3, device=d)  # its layers do not move apart
@@ -1721,14 +1685,9 @@ class SelfCollision:
         launch(step_begin_kernel, max(len(STAT_KEYS), 1),
                [self.done, self.violated, self._flags, self.counters], device=d)
         steps = self._one if steps is None else steps
-        wp.copy(self._x_pre, state.x)
         wp.capture_while(self._flags[1:2], self._round, state=state, x_start=x_start, dt=dt)
         wp.capture_if(self._flags[2:3], self._fallback, state=state, x_start=x_start, dt=dt,
                       steps=steps)
-        if self.broad.num_edges:  # did the response over-stretch an edge? (`STRETCH_AFTER`)
-            launch(response_stretch_kernel, self.broad.num_edges,
-                   [self.broad.edges, self._rest_len, self._x_pre, state.x, self.counters],
-                   device=d)
         launch(accumulate_kernel, len(STAT_KEYS), [self.counters, self.totals], device=d)
 
     #: `step`'s ``obstacles`` callable (None: no obstacles)
@@ -1893,16 +1852,7 @@ class SelfCollision:
                         "itself)", False))
         # steps of the frame that returned the whole cloth to its start or dropped contacts:
         # the runner may run the frame again with more steps (`Scene`'s ``retries``)
-        i_str = STAT_KEYS.index("self_stretched")
-        stretched = int(t[i_str] - seen[i_str])
-        self.frame_failed = (returned + int(t[i_over] - seen[i_over]) + int(self.frame_frozen)
-                             + stretched)
-        if stretched:
-            out.append((f"self-collision's response stretched a mesh edge past "
-                        f"{100 * float(STRETCH_AFTER):g} % (and by more than "
-                        f"{100 * float(STRETCH_RISE):g} % over the solve's) in {stretched} "
-                        "step(s): the cloth moves too far in a step for its contacts (a landing "
-                        "or an impact at speed); more steps a frame keep it", False))
+        self.frame_failed = returned + int(t[i_over] - seen[i_over]) + int(self.frame_frozen)
         if returned and not standing:  # (a standing frame's message above says it)
             out.append((f"self-collision returned the whole cloth to its start in "
                         f"{returned} step(s): contacts the projection and the "
