@@ -422,7 +422,7 @@ def cand_built_kernel(n: wp.array(dtype=int), cap_vt: int, cap_ee: int, gap: flo
 
 
 @wp.kernel
-def cand_use_kernel(built_gap: wp.array(dtype=float), flags: wp.array(dtype=int)):
+def cand_use_kernel(flags: wp.array(dtype=int)):
     """No rebuild needed: use the lists."""
     if flags[0] == 0:
         flags[1] = 1
@@ -1380,7 +1380,7 @@ class SelfCollision:
         launch(cand_begin_kernel, 1, [g, self._cand_gap, self._cand_flags], device=d)
         launch(cand_check_kernel, n, [x0, x1, self._cand_x0, self._cand_x1,
                                       0.999 * self._cand_reach, self._cand_flags], device=d)
-        launch(cand_use_kernel, 1, [self._cand_gap, self._cand_flags], device=d)
+        launch(cand_use_kernel, 1, [self._cand_flags], device=d)
         wp.capture_if(self._cand_flags[0:1], self._cand_build, x0=x0, x1=x1)
         wp.capture_if(self._cand_flags[1:2], self._cand_test, x0=x0, x1=x1, gap=g,
                       record=record, done=done, active=active)
@@ -1409,18 +1409,18 @@ class SelfCollision:
 
     def _cand_test(self, x0, x1, gap, record, done, active):
         b, m, d = self.broad, self.model, self.device
-        args = [x0, x1, None, gap, self.thickness, m.inv_mass, self.rest, done, active,
-                record, self._no_pairs, self._npairs, self._cand_threads]
         # this detection's boxes (the BVHs' arrays; the next traversal writes its own)
         launch(cloth_bounds_kernel, b.num_tris + b.num_edges,
                [x0, x1, b.tris, b.edges, b.num_tris, 0.5 * float(gap), b.lowers, b.uppers,
                 b.elowers, b.euppers], device=d)
-        args[2] = b.tris
+        rest = [gap, self.thickness, m.inv_mass, self.rest, done, active, record,
+                self._no_pairs, self._npairs, self._cand_threads]
         launch(vt_list_kernel, self._cand_threads,
-               [self._cand_vt, self._cand_n, b.lowers, b.uppers, *args], device=d)
-        args[2] = b.edges
+               [self._cand_vt, self._cand_n, b.lowers, b.uppers, x0, x1, b.tris, *rest],
+               device=d)
         launch(ee_list_kernel, self._cand_threads,
-               [self._cand_ee, self._cand_n, b.elowers, b.euppers, *args], device=d)
+               [self._cand_ee, self._cand_n, b.elowers, b.euppers, x0, x1, b.edges, *rest],
+               device=d)
 
     def _query_bvh(self, x0, x1, gap, record, done, active):
         """`_query`'s BVH detection (a candidate build that overflowed)."""
