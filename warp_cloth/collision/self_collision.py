@@ -1320,22 +1320,9 @@ class SelfCollision:
         # gap, as before, listed the pairs within twice it: on the twist at frame 150, 95k
         # edge-edge candidates for 278 contacts, 45k with half (`bench selfcollision`)
         b, m, d = self.broad, self.model, self.device
-        # ``moved`` (BVH): only the pairs with a marked vertex (`_detect_moved`)
-        partial = self._in_span or moved is not None
-        if (self._cand is not None and vt and ee and vt_pairs.shape[0] == 0
-                and ee_pairs.shape[0] == 0):
-            # contacts (not a listing of candidates): by the candidate lists
-            active = self._no_int if moved is None else moved
-            if self._in_span and moved is None:
-                active = self._active
-                slack = max(0.0, 0.5 * (float(gap) - self.thickness))
-                launch(active_kernel, m.num_vertices, [x0, x1, self._allow, slack, active],
-                       device=d)
-            self._query_listed(x0, x1, gap, record, done, active)
-            return
-        b.update(x0, x1, 0.5 * float(gap), vertices=partial)
-        common = [x0, x1]
         if b.method == "grid":
+            b.update(x0, x1, 0.5 * float(gap))
+            common = [x0, x1]
             if vt:
                 launch(self_vt_grid_kernel, m.num_vertices,
                        [b.tri_grid.id, b.lowers, b.uppers, b.rmax, *common, b.tris, gap,
@@ -1346,27 +1333,22 @@ class SelfCollision:
                        [b.edge_grid.id, b.elowers, b.euppers, b.rmax, *common, b.edges, gap,
                         self.thickness, m.inv_mass, self.rest, done, record, ee_pairs, npairs],
                        device=d)
+            return
+        # ``moved`` (BVH): only the pairs with a marked vertex (`_detect_moved`)
+        active = self._no_int if moved is None else moved
+        if self._in_span and moved is None:  # allowances from the span's start: only the
+            # active part queries
+            active = self._active
+            slack = max(0.0, 0.5 * (float(gap) - self.thickness))
+            launch(active_kernel, m.num_vertices, [x0, x1, self._allow, slack, active],
+                   device=d)
+        if (self._cand is not None and vt and ee and vt_pairs.shape[0] == 0
+                and ee_pairs.shape[0] == 0):
+            # contacts (not a listing of candidates): by the candidate lists
+            self._query_listed(x0, x1, gap, record, done, active)
         else:
-            active = self._no_int if moved is None else moved
-            if self._in_span and moved is None:  # allowances from the span's start: only the
-                # active part queries
-                active = self._active
-                slack = max(0.0, 0.5 * (float(gap) - self.thickness))
-                launch(active_kernel, m.num_vertices, [x0, x1, self._allow, slack, active],
-                       device=d)
-            if vt:
-                launch(self_vt_bvh_kernel, m.num_vertices,
-                       [b.tri_bvh.id, *common, b.tris, gap, self.thickness, m.inv_mass,
-                        self.rest, done, active, record, vt_pairs, npairs], device=d)
-                if partial:
-                    launch(self_tv_bvh_kernel, b.num_tris,
-                           [b.vertex_bvh.id, b.lowers, b.uppers, *common, b.tris, gap,
-                            self.thickness, m.inv_mass, self.rest, done, active, record,
-                            vt_pairs, npairs], device=d)
-            if ee:
-                launch(self_ee_bvh_kernel, b.num_edges,
-                       [b.edge_bvh.id, *common, b.edges, gap, self.thickness, m.inv_mass,
-                        self.rest, done, active, record, ee_pairs, npairs], device=d)
+            self._query_bvh(x0, x1, gap, record, done, active, vt_pairs, ee_pairs, npairs,
+                            vt, ee)
 
     def _query_listed(self, x0, x1, gap, record, done, active):
         """`_query` by the candidate lists: built from the BVHs (boxes grown by the reach
@@ -1422,22 +1404,31 @@ class SelfCollision:
                [self._cand_ee, self._cand_n, b.elowers, b.euppers, x0, x1, b.edges, *rest],
                device=d)
 
-    def _query_bvh(self, x0, x1, gap, record, done, active):
-        """`_query`'s BVH detection (a candidate build that overflowed)."""
+    def _query_bvh(self, x0, x1, gap, record, done, active, vt_pairs=None, ee_pairs=None,
+                   npairs=None, vt=True, ee=True):
+        """`_query`'s BVH traversal: the vertices against the triangles and the edges against
+        the edges, contacts appended to ``record`` (or, with ``vt_pairs`` / ``ee_pairs``, the
+        candidates listed); with an ``active`` set only the pairs with an active vertex (the
+        vertices' BVH finds the inactive vertices of triangles with an active corner)."""
         b, m, d = self.broad, self.model, self.device
+        vt_pairs = self._no_pairs if vt_pairs is None else vt_pairs
+        ee_pairs = self._no_pairs if ee_pairs is None else ee_pairs
+        npairs = self._npairs if npairs is None else npairs
         partial = active.shape[0] > 0
         b.update(x0, x1, 0.5 * float(gap), vertices=partial)
-        launch(self_vt_bvh_kernel, m.num_vertices,
-               [b.tri_bvh.id, x0, x1, b.tris, gap, self.thickness, m.inv_mass, self.rest, done,
-                active, record, self._no_pairs, self._npairs], device=d)
-        if partial:
-            launch(self_tv_bvh_kernel, b.num_tris,
-                   [b.vertex_bvh.id, b.lowers, b.uppers, x0, x1, b.tris, gap, self.thickness,
-                    m.inv_mass, self.rest, done, active, record, self._no_pairs, self._npairs],
-                   device=d)
-        launch(self_ee_bvh_kernel, b.num_edges,
-               [b.edge_bvh.id, x0, x1, b.edges, gap, self.thickness, m.inv_mass, self.rest,
-                done, active, record, self._no_pairs, self._npairs], device=d)
+        if vt:
+            launch(self_vt_bvh_kernel, m.num_vertices,
+                   [b.tri_bvh.id, x0, x1, b.tris, gap, self.thickness, m.inv_mass, self.rest,
+                    done, active, record, vt_pairs, npairs], device=d)
+            if partial:
+                launch(self_tv_bvh_kernel, b.num_tris,
+                       [b.vertex_bvh.id, b.lowers, b.uppers, x0, x1, b.tris, gap,
+                        self.thickness, m.inv_mass, self.rest, done, active, record, vt_pairs,
+                        npairs], device=d)
+        if ee:
+            launch(self_ee_bvh_kernel, b.num_edges,
+                   [b.edge_bvh.id, x0, x1, b.edges, gap, self.thickness, m.inv_mass, self.rest,
+                    done, active, record, ee_pairs, npairs], device=d)
 
     def _cand_alloc(self, vt: int, ee: int) -> None:
         """Candidate lists of ``vt`` vertex-triangle and ``ee`` edge-edge pairs (allocation:
