@@ -113,6 +113,11 @@ def test_self_collision_alone_and_its_arguments():
     sc = SelfCollision(model, 0.004, clearance=1.0)  # no allowances: the reach everywhere
     sc.plan(10, 0.25)
     assert not sc.allowances
+    for bad in (-0.5, float("nan"), float("inf"), "far"):
+        with pytest.raises(ValueError, match="candidate_reach"):
+            SelfCollision(model, 0.004, candidate_reach=bad)
+    assert SelfCollision(model, 0.004, candidate_reach=0).candidate_stats() == {}
+    assert SelfCollision(model, 0.004, broadphase="grid").candidate_stats() == {}  # BVH only
 
 
 def test_default_fold_on_the_floor_stays_above_it():
