@@ -146,6 +146,27 @@ def test_ccd_degenerate_cases():
     assert s == 1 and abs(t - 0.5) < 1e-3
 
 
+@pytest.mark.parametrize("end", [0.9e-3, 1.1e-3])
+def test_ccd_reaching_delta_at_the_end_of_the_step(end):
+    """Paths whose distance falls to ``end`` exactly at t = 1, ``delta`` 1e-3 (coordinates
+    within 1: `run_queries` scales it with larger ones): a hit just
+    below it, a miss just above (the early miss once the distance less the most the rest of
+    the path can close exceeds ``delta``: with ``lp`` halved or the remaining time ignored,
+    the hits here are missed). Head-on, after an advance along a slanted path (the remaining
+    time enters the bound), with both primitives moving, and edge against edge."""
+    hit = end < 1e-3
+    s, t = _vt((0.2, 0.2, 1), TRI, (0.2, 0.2, end), TRI, delta=1e-3)
+    assert s == int(hit) and (not hit or t > 0.99)
+    s, t = _vt((1, 0.2, 1), TRI, (0.2, 0.2, end), TRI, delta=1e-3)
+    assert s == int(hit) and (not hit or t > 0.99)
+    up = [(x, y, z + 0.25) for x, y, z in TRI]
+    s, t = _vt((0.2, 0.2, 1), TRI, (0.2, 0.2, 0.25 + end), up, delta=1e-3)
+    assert s == int(hit) and (not hit or t > 0.99)
+    b = [(0.5, -1, 0), (0.5, 1, 0)]
+    s, t = _ee([(0, 0, 1), (1, 0, 1)], b, [(0, 0, end), (1, 0, end)], b, delta=1e-3)
+    assert s == int(hit) and (not hit or t > 0.99)
+
+
 def test_ccd_time_is_conservative():
     """At the reported time the primitives are still apart (the advancement never steps past
     the contact), and the distance there is at most delta."""
