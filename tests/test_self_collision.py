@@ -1919,3 +1919,197 @@ def test_candidate_lists_cover_pairs_that_come_close_within_the_reach():
     assert out[0] == out[2] == []
     assert len(out[3]) > 50 and out[1] == out[3]
     assert lists.candidate_stats()["builds"] == 1
+
+
+def test_response_detections_reuse_the_solve_detection():
+    """A response's detections take the solve's (`SelfCollision._reuse_or`): the solve's
+    record entries tested again on the response's paths, plus the pairs with a vertex whose
+    path ends left the solve's by more than half the gaps' difference (detected by the BVHs):
+    exactly a full detection's contacts. Two sheets 1.5 thicknesses apart, then pressed
+    together by 0.3 each (every vertex near: the contacts come from the solve's entries);
+    one vertex pushed far through the other sheet (a far vertex too); sheets 3.6 thicknesses
+    apart (no solve entry), four vertices of each pressed by 1.4 toward the other (far: fails
+    with the allowance doubled, those vertices would count as near and their contacts be
+    missed); the whole sheets pressed (most vertices far), a solve record that dropped
+    entries, a forgotten one, and a gap not below the solve's: a full detection."""
+    import warp as wp
+
+    from warp_cloth.collision.record import make_record
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    h = 0.01
+    model = _two_sheets(1.5 * h)
+    sc = SelfCollision(model, h)
+    plain = SelfCollision(model, h, candidate_reach=0)
+    x = model.mesh.vertices
+    n = len(x) // 2
+
+    def arr(a):
+        return wp.array(a, dtype=wp.vec3, device="cpu")
+
+    def note(a, b, gs, rec):
+        rec.count.zero_()
+        rec.overflow.zero_()
+        sc.detect(arr(a), arr(b), gs, rec)
+        sc.note_solve(arr(a), arr(b), gs, rec)
+
+    def respond(a, b, g):
+        sc.record.count.zero_()
+        sc.counters.zero_()
+        sc._reuse_or(arr(a), arr(b), g, sc._detect_full, sc._reuse_all)
+        plain.record.count.zero_()
+        plain.detect(arr(a), arr(b), g, plain.record)
+        got = _full_entries(sc)
+        assert got == _full_entries(plain)
+        return len(got), sc.stats["self_reused"], int(sc._sol_flags.numpy()[1])
+
+    def pressed(a, by):
+        b = a.copy()
+        b[:n, 1] += by
+        b[n:, 1] -= by
+        return b
+
+    solve = make_record(1 << 14, "cpu")
+    note(x, x, 3 * h, solve)
+    assert int(solve.count.numpy()[0]) > 50
+    k, reused, far = respond(x, pressed(x, 0.3 * h), h)
+    assert k > 50 and reused == 1 and far == 0
+    through = pressed(x, 0.3 * h)
+    through[n + 3] += [0.3, -2.0 * h, 0.0]
+    k2, reused, far = respond(x, through, h)
+    assert k2 != k and reused == 1 and far == 1
+    apart = x.copy()
+    apart[n:, 1] += 2.1 * h
+    note(apart, apart, 3 * h, solve)
+    assert int(solve.count.numpy()[0]) == 0
+    patch = apart.copy()
+    for i in (16, 17, 23, 24):  # four vertices of each sheet, facing each other
+        patch[i, 1] += 1.4 * h
+        patch[n + i, 1] -= 1.4 * h
+    k, reused, far = respond(apart, patch, h)
+    assert k > 4 and reused == 1 and far == 1
+    k, reused, far = respond(apart, pressed(apart, 1.3 * h), h)  # most vertices far
+    assert k > 50 and reused == 0 and far == 1
+    small = make_record(4, "cpu")  # the solve's detection drops entries: not reused
+    note(x, x, 3 * h, small)
+    k, reused, _ = respond(x, pressed(x, 0.3 * h), h)
+    assert k > 50 and reused == 0
+    note(x, x, 3 * h, solve)
+    sc.forget_solve()
+    assert respond(x, pressed(x, 0.3 * h), h)[1] == 0
+    note(x, x, 3 * h, solve)
+    assert respond(x, pressed(x, 0.3 * h), 3 * h)[1] == 0
+
+
+@pytest.mark.parametrize("rounds", [6, 1])
+def test_responses_from_the_solve_detection_detect_what_full_rounds_detect(rounds):
+    """A response whose detections start from the solve's (`SelfCollision._reuse_or`): its
+    first round's solve entries tested again, later rounds' only those with a vertex the last
+    projection moved beside the kept entries (`_reuse_kept`), the zones' first pass's kept
+    entries tested again at the fail-safe gap (`_reuse_retested`), far vertices' pairs by
+    the BVHs: every round's and zone pass's entries exactly those of full detections, on the
+    crumpled sheet of `test_incremental_rounds_detect_what_full_rounds_detect` with a solve
+    path near the response's but for a few vertices, and the same end positions. (Once the
+    zones' rigid moves take most vertices far from the solve's paths, full detections.)"""
+    import warp as wp
+
+    from warp_cloth.collision.record import make_record
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    model, rng = _crumpled(res=8, spread=0.04)
+    h = 0.03
+    x0 = model.mesh.vertices
+    x1 = x0 + rng.normal(0, 0.03 if rounds > 1 else 0.08, x0.shape)
+    pred = x1 + rng.normal(0, 0.05 * h, x0.shape)
+    pred[::17] += 1.5 * h  # far from the response's paths
+
+    def arr(a):
+        return wp.array(a, dtype=wp.vec3, device="cpu")
+
+    runs = {}
+    for reuse in (True, False):
+        sc = SelfCollision(model, h, rounds=rounds, iterations=2, incremental=reuse)
+        rounds_seen, zones_seen = [], []
+        project, zone_pass = sc._project, sc._zone_pass
+
+        def spy(state, dt, sc=sc, project=project, seen=rounds_seen):
+            seen.append(_entries(sc))
+            project(state, dt)
+
+        def zspy(*a, sc=sc, zone_pass=zone_pass, seen=zones_seen, **k):
+            zone_pass(*a, **k)
+            seen.append(_entries(sc))
+
+        sc._project, sc._zone_pass = spy, zspy
+        if reuse:
+            solve = make_record(1 << 15, "cpu")
+            sc.detect(arr(x0), arr(pred), 3.0 * h, solve)
+            sc.note_solve(arr(x0), arr(pred), 3.0 * h, solve)
+        state = model.state()
+        state.x.assign(x1)
+        sc.resolve(state, arr(x0), 1.0 / 60.0)
+        runs[reuse] = (rounds_seen, zones_seen, state.x.numpy(), sc.stats)
+    (r, z, x_r, st_r), (f, zf, x_f, st_f) = runs[True], runs[False]
+    assert len(r) == len(f) and len(z) == len(zf)
+    assert st_f["self_reused"] == 0 and st_r["self_reused"] >= 1
+    if rounds > 1:  # every detection reused (with one round the zones' moves leave the
+        assert st_r["self_reused"] == len(r) + len(z)  # solve's paths: full detections)
+    if rounds > 1:
+        assert len(r) >= 4 and min(len(e) for e in f) >= 3
+    else:
+        assert len(zf) >= 2 and len(zf[0]) > 0
+    for a, b in zip(r + z, f + zf):
+        assert a == b
+    assert np.allclose(x_r, x_f, atol=1e-6)
+
+
+def test_later_reused_detections_keep_or_test_again_the_unmoved_entries():
+    """The later detections of a response that starts from the solve's: a round keeps the last
+    record's entries whose vertices neither moved nor are far and tests again only the solve's
+    entries with a moved vertex (`SelfCollision._reuse_kept`: with every solve entry tested
+    again the kept pairs come twice; with the moved vertices' entries kept they are stale);
+    a zone pass's first detection tests the kept entries again at its smaller gap
+    (`_reuse_retested`: kept as they were, pairs beyond that gap stay). Each exactly a full
+    detection's contacts; two sheets 1.2 thicknesses apart, rounds detecting at 2, a third of
+    the vertices moved, a zone pass at 1.1."""
+    import warp as wp
+
+    from warp_cloth.collision.record import make_record
+    from warp_cloth.collision.self_collision import SelfCollision
+
+    h = 0.01
+    model = _two_sheets(1.2 * h)
+    sc = SelfCollision(model, h)
+    plain = SelfCollision(model, h, candidate_reach=0)
+    x = model.mesh.vertices
+    rng = np.random.default_rng(5)
+    moved = (rng.uniform(size=len(x)) < 0.3).astype(np.int32)
+    x2 = x + moved[:, None] * rng.uniform(-0.1, 0.1, x.shape) * h
+
+    def arr(a):
+        return wp.array(a, dtype=wp.vec3, device="cpu")
+
+    def full(b, g):
+        plain.record.count.zero_()
+        plain.detect(arr(x), arr(b), g, plain.record)
+        return _full_entries(plain)
+
+    solve = make_record(1 << 14, "cpu")
+    sc.detect(arr(x), arr(x), 5 * h, solve)
+    sc.note_solve(arr(x), arr(x), 5 * h, solve)
+    sc.counters.zero_()
+    sc._moved_round.zero_()
+    sc._incremental.zero_()
+    sc._reuse_or(arr(x), arr(x), 2 * h, sc._round_detect, sc._reuse_round)  # a first round
+    first = _full_entries(sc)
+    assert first == full(x, 2 * h) and len(first) > 100
+    sc._moved_round.assign(moved)
+    sc._incremental.fill_(1)
+    sc._reuse_or(arr(x), arr(x2), 2 * h, sc._round_detect, sc._reuse_round)  # a later round
+    assert _full_entries(sc) == full(x2, 2 * h)
+    sc._zone_incremental.fill_(1)
+    sc._moved_round.zero_()
+    sc._reuse_or(arr(x), arr(x2), 1.1 * h, sc._zone_detect, sc._reuse_zone)  # a zone pass
+    zone = _full_entries(sc)
+    assert zone == full(x2, 1.1 * h) and 0 < len(zone) < len(first)
+    assert sc.stats["self_reused"] == 3

@@ -991,14 +991,18 @@ class ContactCoupling:
         self.self_record.count.zero_()
         self.self_record.overflow.zero_()
         if sc is not None and self.stage.self_in_solve:
-            sc.detect(x_start, x_end, sc.thickness + self.stage.self_solve_margin,
-                      self.self_record)
+            gap = sc.thickness + self.stage.self_solve_margin
+            sc.detect(x_start, x_end, gap, self.self_record)
+            # the response's first round may test these entries again (`note_solve`)
+            sc.note_solve(x_start, x_end, gap, self.self_record)
             launch(add_overflow_kernel, 1, [self.self_record, self.self_dropped],
                    device=self.device)
             if self.self_sag_cap > 0.0:
                 launch(self_sag_apply_kernel, self.self_threads,
                        [self.self_record, self.self_sag, self.self_threads],
                        device=self.device)
+        elif sc is not None:
+            sc.forget_solve()  # the record is empty now
         self.self_on.zero_()
         self.self_list_n.zero_()
 
