@@ -424,11 +424,16 @@ def newton_contact_kernel(
     active: wp.array(dtype=int),
     on_out: wp.array(dtype=int),
     resting: int,
+    pv: wp.array(dtype=wp.vec4i),
+    pw: wp.array(dtype=wp.vec4),
+    pn: wp.array(dtype=wp.vec4),
+    packed: wp.array(dtype=int),
 ):
     """Active entries: their force ``-grad E_c`` into ``b``; their blocks into ``diag`` and
     ``vblock`` (``w_j^2 H``), the normal penalty's alone into ``nblock`` (for the residual);
     the number of active entries into ``active[0]``; with an ``on_out`` array, each entry's
-    activity (the off-diagonal part of the multi-vertex entries' Hessian, `pair_matvec_list_kernel`).
+    activity (the off-diagonal part of the multi-vertex entries' Hessian, `pair_matvec_list_kernel`);
+    with ``pv`` arrays, each active entry packed (`pack_entry`, counted in ``packed[0]``).
 
     With ``resting`` (the step's first assembly, `ContactCoupling.resting`): an entry within `RESTING_BAND` above its constraint is active too, with the penalty's block
     and no force (module doc, *Resting contact*)."""
@@ -449,6 +454,8 @@ def newton_contact_kernel(
                 Hn = Hn + hn
         if on_out.shape[0] > 0:
             on_out[e] = int(on)
+        if on and pv.shape[0] > 0:
+            pack_entry(rec, e, inv_mass, pv, pw, pn, packed)
         if on:
             for j in range(4):
                 v = vid[j]
@@ -508,37 +515,35 @@ def list_on_kernel(rec: ContactRecord, on: wp.array(dtype=int), min_vertices: in
                 out[wp.atomic_add(n, 0, 1)] = e
 
 
-@wp.kernel
-def pack_on_kernel(rec: ContactRecord, on: wp.array(dtype=int), inv_mass: wp.array(dtype=float),
-                   num_threads: int, pv: wp.array(dtype=wp.vec4i), pw: wp.array(dtype=wp.vec4),
-                   pn: wp.array(dtype=wp.vec4), n: wp.array(dtype=int)):
-    """`list_on_kernel` for the self-contacts, each listed entry packed for
-    `pair_matvec_packed_kernel`: its free vertices (``pv``, -1 for a pinned or unused one),
-    their weights (``pw``, 0 there) and its normal with ``1 / sum_j w_j^2 m_j^-1`` (``pn``;
-    an entry with no free vertex is not listed). Packed once an assembly, the product that
-    runs every inner iteration reads one entry's data in three loads instead of walking the
-    record and the inverse masses (`pair_matvec_entry`)."""
-    t = wp.tid()
-    count = wp.min(rec.count[0], rec.vertex.shape[0])
-    for e in range(t, count, num_threads):
-        if on[e] != 0:
-            vid = rec.vertex[e]
-            w = rec.weight[e]
-            nrm = rec.normal[e]
-            im = float(0.0)
-            v = wp.vec4i(-1, -1, -1, -1)
-            c = wp.vec4(0.0)
-            for j in range(4):
-                if vid[j] >= 0:
-                    im = im + w[j] * w[j] * inv_mass[vid[j]]
-                    if inv_mass[vid[j]] > 0.0:
-                        v[j] = vid[j]
-                        c[j] = w[j]
-            if im > 0.0:
-                k = wp.atomic_add(n, 0, 1)
-                pv[k] = v
-                pw[k] = c
-                pn[k] = wp.vec4(nrm[0], nrm[1], nrm[2], 1.0 / im)
+@wp.func
+def pack_entry(rec: ContactRecord, e: int, inv_mass: wp.array(dtype=float),
+               pv: wp.array(dtype=wp.vec4i), pw: wp.array(dtype=wp.vec4),
+               pn: wp.array(dtype=wp.vec4), n: wp.array(dtype=int)):
+    """An active self-contact entry packed for `pair_matvec_packed_kernel` (by the assembly
+    that finds it active: `newton_contact_kernel`, `pd_contact_kernel`): its free vertices
+    (``pv``, -1 for a pinned or unused one), their weights (``pw``, 0 there) and its normal
+    with ``1 / sum_j w_j^2 m_j^-1`` (``pn``; an entry with no free vertex is left out). The
+    product that runs every inner iteration then reads one entry's data in three loads instead
+    of walking the record and the inverse masses (`pair_matvec_entry`), and no pass over the
+    record lists the active entries."""
+    vid = rec.vertex[e]
+    w = rec.weight[e]
+    nrm = rec.normal[e]
+    im = float(0.0)
+    v = wp.vec4i(-1, -1, -1, -1)
+    c = wp.vec4(0.0)
+    for j in range(4):
+        if vid[j] >= 0:
+            im = im + w[j] * w[j] * inv_mass[vid[j]]
+            if inv_mass[vid[j]] > 0.0:
+                v[j] = vid[j]
+                c[j] = w[j]
+    if im > 0.0:
+        k = wp.atomic_add(n, 0, 1)
+        if k < pv.shape[0]:
+            pv[k] = v
+            pw[k] = c
+            pn[k] = wp.vec4(nrm[0], nrm[1], nrm[2], 1.0 / im)
 
 
 @wp.kernel
@@ -546,7 +551,7 @@ def pair_matvec_packed_kernel(pv: wp.array(dtype=wp.vec4i), pw: wp.array(dtype=w
                               pn: wp.array(dtype=wp.vec4), n: wp.array(dtype=int),
                               kappa_dt2: float, num_threads: int, x: wp.array(dtype=wp.vec3),
                               out: wp.array(dtype=wp.vec3)):
-    """`pair_matvec_list_kernel` over the entries `pack_on_kernel` packed."""
+    """`pair_matvec_list_kernel` over the entries `pack_entry` packed."""
     t = wp.tid()
     for q in range(t, n[0], num_threads):
         v = pv[q]
@@ -769,12 +774,17 @@ def pd_contact_kernel(
     on_out: wp.array(dtype=int),
     slide: wp.array(dtype=int),
     slide_weight: float,
+    pv: wp.array(dtype=wp.vec4i),
+    pw: wp.array(dtype=wp.vec4),
+    pn: wp.array(dtype=wp.vec4),
+    packed: wp.array(dtype=int),
 ):
     """Local step of the contact constraints: the projection onto ``g >= 0`` gives the force
     ``-k_c min(g, 0) w_j n`` (and friction); the blocks ``w_j^2 H`` into ``vblock`` for this
     iteration's global matrix (lumped, ``|w_j| sum_l |w_l| H``, for an entry of several cloth
     vertices whose off-diagonal part the operator does not hold); ``E_c`` into the objective;
-    with an ``on_out`` array, each entry's activity (`pair_matvec_list_kernel`). An entry marked in
+    with an ``on_out`` array, each entry's activity (`pair_matvec_list_kernel`), with ``pv``
+    arrays each active entry packed (`pack_entry`). An entry marked in
     ``slide`` (the step's friction guess found its vertex driven past static friction) has a
     friction spring of ``slide_weight`` times ``k_c``: the inertia block, not 1000 times it
     (module doc)."""
@@ -789,6 +799,8 @@ def pd_contact_kernel(
                                          weight)
         if on_out.shape[0] > 0:
             on_out[e] = int(on)
+        if on and pv.shape[0] > 0:
+            pack_entry(rec, e, inv_mass, pv, pw, pn, packed)
         if on:
             vid = rec.vertex[e]
             w = rec.weight[e]
@@ -982,6 +994,9 @@ class ContactCoupling:
         has_obstacles = getattr(stage, "contact", None) is not None
         self.sag_cap = SAG_CAP * stage.thickness if has_obstacles else 0.0
         self._no_flags = wp.zeros(0, dtype=int, device=self.device)
+        self._no_pack = (wp.zeros(0, dtype=wp.vec4i, device=self.device),
+                         wp.zeros(0, dtype=wp.vec4, device=self.device),
+                         wp.zeros(0, dtype=wp.vec4, device=self.device), self._no_flags)
         self._no_vec = wp.zeros(0, dtype=wp.vec3, device=self.device)
         #: Newton's resting-contact rule (`newton_contact_kernel`'s ``resting``): set by implicit
         #: Euler when its guess leaves the external forces' step out (a resting vertex then
@@ -1076,8 +1091,8 @@ class ContactCoupling:
         launch(newton_contact_kernel, self.threads,
                [self.record, x, self.model.inv_mass, *self._args(dt), b, diag, self.vblock,
                 self.nblock, self.active,
-                self.pairs_on if self.pairs_on is not None else self._no_flags, int(resting)],
-               device=self.device)
+                self.pairs_on if self.pairs_on is not None else self._no_flags, int(resting),
+                *self._no_pack], device=self.device)
         if self.pairs_on is not None:  # the active feature pairs, listed for `matvec_add`
             self.pairs_list_n.zero_()
             launch(list_on_kernel, self.threads,
@@ -1085,18 +1100,11 @@ class ContactCoupling:
                     self.pairs_list_n], device=self.device)
         self._dt = dt
         if self.self_record is not None:
+            self.self_list_n.zero_()  # the active entries packed for `matvec_add`
             launch(newton_contact_kernel, self.self_threads,
                    [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
                     self.self_threads, b, diag, self.vblock, self.nblock, self.self_active,
-                    self.self_on, int(resting)], device=self.device)
-            self._list_self_on()
-
-    def _list_self_on(self) -> None:
-        """The self-contacts `self_on` marks, listed for `matvec_add` (after each assembly)."""
-        self.self_list_n.zero_()
-        launch(pack_on_kernel, self.self_threads,
-               [self.self_record, self.self_on, self.model.inv_mass, self.self_threads,
-                self.self_pv, self.self_pw, self.self_pn, self.self_list_n], device=self.device)
+                    self.self_on, int(resting), *self._self_pack], device=self.device)
 
     def mark_free(self, free) -> None:
         """``free[0]`` = 1 when this step's records (obstacles, self-contacts) hold no entry,
@@ -1139,11 +1147,12 @@ class ContactCoupling:
 
         self.self_record = make_record(int(capacity), self.device)
         self.self_on = wp.zeros(int(capacity), dtype=int, device=self.device)
-        # the entries `self_on` marks, listed (`_list_self_on`)
-        self.self_pv = wp.zeros(int(capacity), dtype=wp.vec4i, device=self.device)
-        self.self_pw = wp.zeros(int(capacity), dtype=wp.vec4, device=self.device)
-        self.self_pn = wp.zeros(int(capacity), dtype=wp.vec4, device=self.device)
+        # the active entries, packed by the assembly that finds them active (`pack_entry`)
         self.self_list_n = wp.zeros(1, dtype=int, device=self.device)
+        self._self_pack = (wp.zeros(int(capacity), dtype=wp.vec4i, device=self.device),
+                           wp.zeros(int(capacity), dtype=wp.vec4, device=self.device),
+                           wp.zeros(int(capacity), dtype=wp.vec4, device=self.device),
+                           self.self_list_n)
         self.self_threads = record_threads(int(capacity), self.device, BATCH)
 
     def self_frame_end(self) -> list:
@@ -1182,7 +1191,7 @@ class ContactCoupling:
                    device=self.device)
         if self.self_record is not None:
             launch(pair_matvec_packed_kernel, self.self_threads,
-                   [self.self_pv, self.self_pw, self.self_pn, self.self_list_n,
+                   [*self._self_pack,
                     self.kappa / (self._dt * self._dt), self.self_threads, x, out],
                    device=self.device)
 
@@ -1274,14 +1283,14 @@ class ContactCoupling:
                [self.record, x, self.model.inv_mass, *self._args(dt), f, self.vblock,
                 objective, slot, self._no_flags,
                 self.slide if self._classified else self._no_flags,
-                1.0 / self.kappa], device=self.device)
+                1.0 / self.kappa, *self._no_pack], device=self.device)
         if self.self_record is not None:
             self._dt = dt
+            self.self_list_n.zero_()  # the active entries packed for `matvec_add`
             launch(pd_contact_kernel, self.self_threads,
                    [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
                     self.self_threads, f, self.vblock, objective, slot, self.self_on,
-                    self._no_flags, 1.0], device=self.device)
-            self._list_self_on()
+                    self._no_flags, 1.0, *self._self_pack], device=self.device)
 
     def invert_diagonal(self, blocks, free, dinv) -> None:
         """``dinv = (blocks + vblock)^-1`` (the global matrix's diagonal with contact)."""
