@@ -1918,25 +1918,34 @@ class SelfCollision:
     def _reuse_kept(self, x_start, x, gap):
         """A later round: the last round's entries of unmoved near vertices kept, the solve's
         entries with a moved near vertex tested again, the far vertices' pairs by BVH."""
-        d = self.device
-        launch(record_stash_kernel, self.threads, [self.record, self._stash, self.threads],
-               device=d)
-        self.record.count.zero_()
-        launch(record_keep_kernel, self.threads, [self._stash, self._sol_either, self.record,
-                                                  self.threads], device=d)
+        self._keep_unmarked(self._sol_either)
         self._reuse_rest(x_start, x, gap, self._moved_round)
 
     def _reuse_retested(self, x_start, x, gap):
         """A zone pass's first detection: as `_reuse_kept`, the kept entries tested again at
         its gap."""
+        self._retest_unmarked(self._sol_either, x_start, x, gap)
+        self._reuse_rest(x_start, x, gap, self._moved_round)
+
+    def _keep_unmarked(self, marked):
+        """The record's entries with no vertex in ``marked`` kept, the others dropped."""
+        d = self.device
+        launch(record_stash_kernel, self.threads, [self.record, self._stash, self.threads],
+               device=d)
+        self.record.count.zero_()
+        launch(record_keep_kernel, self.threads, [self._stash, marked, self.record,
+                                                  self.threads], device=d)
+
+    def _retest_unmarked(self, marked, x_start, x, gap):
+        """The record's entries with no vertex in ``marked`` tested again on the paths
+        ``x_start -> x`` with ``gap`` (kept where they hit), the others dropped."""
         d = self.device
         launch(record_stash_kernel, self.threads, [self.record, self._stash, self.threads],
                device=d)
         self.record.count.zero_()
         launch(record_retest_kernel, self.threads,
-               [self._stash, self._sol_either, x_start, x, gap, self.thickness, self.rest,
-                self.record, self.threads], device=d)
-        self._reuse_rest(x_start, x, gap, self._moved_round)
+               [self._stash, marked, x_start, x, gap, self.thickness, self.rest, self.record,
+                self.threads], device=d)
 
     def _reuse_rest(self, x_start, x, gap, moved):
         rec, _, threads = self._sol
@@ -1950,12 +1959,7 @@ class SelfCollision:
                       active=self._sol_far)
 
     def _round_incremental(self, x_start, x, gap):
-        d = self.device
-        launch(record_stash_kernel, self.threads, [self.record, self._stash, self.threads],
-               device=d)
-        self.record.count.zero_()
-        launch(record_keep_kernel, self.threads, [self._stash, self._moved_round, self.record,
-                                                  self.threads], device=d)
+        self._keep_unmarked(self._moved_round)
         self._detect_moved(x_start, x, gap)
 
     def _detect_moved(self, x_start, x, gap):
@@ -2003,13 +2007,7 @@ class SelfCollision:
                device=self.device)
 
     def _zone_detect_incremental(self, x_start, x, gap):
-        d = self.device
-        launch(record_stash_kernel, self.threads, [self.record, self._stash, self.threads],
-               device=d)
-        self.record.count.zero_()
-        launch(record_retest_kernel, self.threads,
-               [self._stash, self._moved_round, x_start, x, gap, self.thickness, self.rest,
-                self.record, self.threads], device=d)
+        self._retest_unmarked(self._moved_round, x_start, x, gap)
         self._detect_moved(x_start, x, gap)
 
     def _zone_move(self, state, x_start, dt, steps):
