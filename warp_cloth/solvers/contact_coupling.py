@@ -190,6 +190,10 @@ def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
     f = wp.vec3(0.0)
     H = wp.mat33(0.0)
     E = float(0.0)
+    mu = rec.friction[e]
+    rubs = mu > 0.0 and rec.kind[e] == KIND_VERTEX_OBSTACLE
+    if g >= 0.0 and not rubs:  # inactive whatever else (most entries of a solve's record)
+        return on, f, H, H, E
     if im <= 0.0 or pin_held(rec.vertex[e], rec.weight[e], inv_mass):
         # a point (nearly) at a pinned vertex: its penalty, of stiffness kappa m_eff / dt^2
         # with m_eff the pin's, would throw the free vertex by the violation over its weight
@@ -204,8 +208,7 @@ def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
         H = k * nn
         E = 0.5 * k * g * g
     Hn = H
-    mu = rec.friction[e]
-    if mu > 0.0 and rec.kind[e] == KIND_VERTEX_OBSTACLE:
+    if rubs:
         i = rec.vertex[e][0]
         lam_i = lam[i * num_sources + rec.source[e]]
         if lam_i > 0.0 and projective > 0.0:
