@@ -185,21 +185,30 @@ def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
     of ``mu lam |u|``, convex). The smoothed Coulomb model's exact Hessian instead (very stiff
     while sticking, none along ``u`` while sliding) made PD's undamped iterations overshoot
     between the branches: the drape gained 22 J at 30 iterations with CG."""
-    g, im = entry_gap(rec, e, x, inv_mass)
     on = bool(False)
     f = wp.vec3(0.0)
     H = wp.mat33(0.0)
     E = float(0.0)
+    vid = rec.vertex[e]
+    w = rec.weight[e]
+    n = rec.normal[e]
+    g = -rec.offset[e]  # `entry_gap`'s, in its order; the masses only for an active entry
+    for j in range(4):
+        if vid[j] >= 0:
+            g = g + w[j] * wp.dot(n, x[vid[j]])
     mu = rec.friction[e]
     rubs = mu > 0.0 and rec.kind[e] == KIND_VERTEX_OBSTACLE
     if g >= 0.0 and not rubs:  # inactive whatever else (most entries of a solve's record)
         return on, f, H, H, E
-    if im <= 0.0 or pin_held(rec.vertex[e], rec.weight[e], inv_mass):
+    im = float(0.0)
+    for j in range(4):
+        if vid[j] >= 0:
+            im = im + w[j] * w[j] * inv_mass[vid[j]]
+    if im <= 0.0 or pin_held(vid, w, inv_mass):
         # a point (nearly) at a pinned vertex: its penalty, of stiffness kappa m_eff / dt^2
         # with m_eff the pin's, would throw the free vertex by the violation over its weight
         # (`pin_held`); left to the response, which reports it
         return on, f, H, H, E
-    n = rec.normal[e]
     nn = wp.outer(n, n)
     if g < 0.0:
         k = kappa_dt2 / im
