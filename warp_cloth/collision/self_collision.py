@@ -30,7 +30,12 @@ Per step, on the cloth's path from ``x_start`` to ``x`` (``physics.md`` 2.18-2.2
 3. **Response** (Bridson et al. 2002, combined Jacobi-style with atomics): rounds of projection
    of the violated entries, each moving its vertices along ``n`` by their share
    ``w_j / m_j / sum w_k^2 / m_k`` of the violation, averaged per vertex, ``v += dx / dt``;
-   then fresh detection on the corrected path, up to ``rounds`` times.
+   then fresh detection on the corrected path, up to ``rounds`` times. Where the solver
+   detected its own self-contacts with a larger gap (implicit Euler, projective dynamics:
+   `SelfCollision.note_solve`), the response's detections start from those: the entries of
+   vertices whose paths stay within half the gaps' difference of the solve's are tested again,
+   only the pairs of the others are detected anew (`SelfCollision._reuse_or`; the same
+   contacts, counted in ``self_reused``).
 4. **Rigid impact zones** (`warp_cloth.collision.impact_zones`): if a path still comes within
    5 % of the thickness after the last round (all but touching: a crossing passes through zero
    distance), or a round's projection finds nothing to move while a pair's path comes that
