@@ -1041,10 +1041,13 @@ def solve_far_kernel(x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
 
 
 @wp.kernel
-def solve_use_kernel(ok: wp.array(dtype=int), most_far: int, flags: wp.array(dtype=int)):
+def solve_use_kernel(ok: wp.array(dtype=int), most_far: int, flags: wp.array(dtype=int),
+                     counters: wp.array(dtype=int)):
     """``flags[0]`` = 1: the solve's record serves (``ok[0]``, `SelfCollision.note_solve`)
-    and at most ``most_far`` vertices are far (`solve_far_kernel`)."""
+    and at most ``most_far`` vertices are far (`solve_far_kernel`); counted in
+    ``self_reused``."""
     flags[0] = wp.where(ok[0] != 0 and flags[2] <= most_far, 1, 0)
+    counters[I_REUSED] = counters[I_REUSED] + flags[0]
 
 
 @wp.kernel
@@ -1077,11 +1080,6 @@ def solve_noted_kernel(rec: ContactRecord, ok: wp.array(dtype=int)):
     """The solve's record serves the response (`SelfCollision.note_solve`) unless its
     detection dropped entries."""
     ok[0] = wp.where(rec.overflow[0] == 0, 1, 0)
-
-
-@wp.kernel
-def solve_reused_kernel(counters: wp.array(dtype=int)):
-    counters[I_REUSED] = counters[I_REUSED] + 1
 
 
 @wp.kernel
@@ -1902,7 +1900,8 @@ class SelfCollision:
         launch(solve_far_kernel, n,
                [x_start, x, self._sol_x0, self._sol_x1, allow, self._moved_round,
                 self._sol_far, self._sol_either, self._sol_flags], device=d)
-        launch(solve_use_kernel, 1, [self._sol_ok, int(SOLVE_MOST_FAR * n), self._sol_flags],
+        launch(solve_use_kernel, 1,
+               [self._sol_ok, int(SOLVE_MOST_FAR * n), self._sol_flags, self.counters],
                device=d)
         wp.capture_if(self._sol_flags[0:1], on_true=reuse, on_false=otherwise,
                       x_start=x_start, x=x, gap=gap)
@@ -1955,7 +1954,6 @@ class SelfCollision:
     def _reuse_rest(self, x_start, x, gap, moved):
         rec, _, threads = self._sol
         d = self.device
-        launch(solve_reused_kernel, 1, [self.counters], device=d)
         launch(solve_retest_kernel, threads,
                [rec, self._sol_far, moved, x_start, x, gap, self.thickness, self.rest,
                 self.record, threads], device=d)
