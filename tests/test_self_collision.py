@@ -2003,6 +2003,11 @@ def test_response_detections_reuse_the_solve_detection():
     assert respond(x, pressed(x, 0.3 * h), h)[1] == 0
     note(x, x, 3 * h, solve)
     assert respond(x, pressed(x, 0.3 * h), 3 * h)[1] == 0
+    for bad in (h, 0.5 * h, float("nan"), float("inf"), "wide"):  # not above the thickness
+        with pytest.raises(ValueError, match="note_solve: gap"):
+            sc.note_solve(arr(x), arr(x), bad, solve)
+    with pytest.raises(ValueError, match="note_solve: x1 has 3 positions"):
+        sc.note_solve(arr(x), arr(x[:3]), 3 * h, solve)
 
 
 @pytest.mark.parametrize("rounds", [6, 1])

@@ -1402,10 +1402,25 @@ class SelfCollision:
         ``x0 -> x1`` with ``gap``: `ContactCoupling.detect_self`); kept (the paths copied) so
         that the response's detections can test those entries again instead of scanning
         every candidate (`_reuse_or`). Call `forget_solve` when ``record`` is cleared or
-        refilled otherwise. Without incremental rounds (the grid broad phase): nothing."""
+        refilled otherwise. Without incremental rounds (the grid broad phase): nothing.
+
+        Raises ValueError for a gap that is not a finite number above the thickness (the
+        response's detections could not start from it) or paths of another vertex count."""
+        try:
+            g = float(gap)
+        except (TypeError, ValueError):
+            g = float("nan")
+        if not (g > self.thickness and g < float("inf")):
+            raise ValueError(f"SelfCollision.note_solve: gap must be a finite number of metres "
+                             f"above the thickness {self.thickness}, got {gap!r}")
+        n = self.model.num_vertices
+        for name, a in (("x0", x0), ("x1", x1)):
+            if len(a) != n:
+                raise ValueError(f"SelfCollision.note_solve: {name} has {len(a)} positions, the "
+                                 f"cloth {n} vertices")
         if self._incremental is None:
             return
-        self._sol = (record, float(gap), record_threads(record.vertex.shape[0], self.device))
+        self._sol = (record, g, record_threads(record.vertex.shape[0], self.device))
         wp.copy(self._sol_x0, x0)
         wp.copy(self._sol_x1, x1)
         launch(solve_noted_kernel, 1, [record, self._sol_ok], device=self.device)
