@@ -183,3 +183,23 @@ def test_stable_dt_of_the_dashpot_is_the_exact_two_mode_bound():
     w2, g = K[1] / m, C[1] / m
     dt = SymplecticEuler.stable_dt(model)
     assert dt * dt * w2 + 2 * dt * g == pytest.approx(4.0)
+
+
+def test_a_step_past_the_stability_bound_is_warned_before_the_run(capsys):
+    """Substeps given by hand that put explicit Euler's step past its stability bound are a
+    warning at the start, naming the factor and the steps a frame that hold it; the solver's
+    own substeps are not."""
+    scene = hanging(solver="explicit", res=4, fps=24.0, frames=2, substeps=1,
+                    self_collision=False)
+    sdt = SymplecticEuler.stable_dt(scene.model)
+    try:
+        scene.run(None, energy=False)
+    except SimulationDiverged:
+        pass
+    err = capsys.readouterr().err
+    assert f"{scene.dt / sdt:.3g} times its stability bound" in err, err
+    need = scene.solver.suggest_substeps(1.0 / 24.0)
+    assert f"{need} steps a frame keep it stable" in err
+    ok = hanging(solver="explicit", res=4, fps=24.0, frames=2, self_collision=False)
+    ok.run(None, energy=False)
+    assert "stability bound" not in capsys.readouterr().err

@@ -2182,3 +2182,56 @@ def test_irregular_sheet_folds_onto_itself_without_crossing(solver_name):
 def test_irregular_sheet_passes_through_itself_without_self_collision():
     stats, _ = _irregular_fold("pd", self_collision=False)
     assert stats.crossing_frames > 0
+
+
+@pytest.mark.parametrize("stretch, diverged", [(10.5, True), (9.5, False), (np.nan, True)])
+def test_a_response_to_a_diverged_solve_returns_the_cloth_without_detecting(stretch, diverged):
+    """A 4 x 4 sheet whose solve moved one corner so far that its edge is ``1 + stretch`` times
+    its rest length (`DIVERGED_STRAIN` = 10), or to NaN: the response returns every free vertex
+    to its start with zero velocity and detects nothing (``self_diverged``, also a whole-cloth
+    fall-back); just under the bound it responds as usual, and the paths (no other layer) need
+    nothing."""
+    from warp_cloth.collision.self_collision import DIVERGED_STRAIN, SelfCollision
+
+    assert DIVERGED_STRAIN == 10.0
+    model = sheet_model(res=4)
+    sc = SelfCollision(model, 0.005)
+    st = model.state()
+    x0 = st.positions()
+    x = x0.copy()
+    h = 1.0 / 4  # the cell: corner 0's edge along x runs to vertex 1
+    x[0] = x[1] - np.array([h * (1.0 + stretch), 0.0, 0.0]) if np.isfinite(stretch) \
+        else np.array([np.nan, 0.0, 0.0])
+    st.x.assign(wp.array(x, dtype=wp.vec3, device="cpu"))
+    st.v.assign(wp.array(np.ones_like(x), dtype=wp.vec3, device="cpu"))
+    sc.resolve(st, wp.array(x0, dtype=wp.vec3, device="cpu"), 1.0 / 60.0)
+    s = sc.stats
+    if diverged:
+        np.testing.assert_array_equal(st.positions(), x0)
+        assert np.all(st.v.numpy() == 0.0)
+        assert s["self_diverged"] == 1 and s["self_fallback_all"] == 1
+        assert s["self_contacts"] == 0
+        msgs = [m for m, _ in sc.frame_end()]
+        assert sc.frame_diverged and sc.frame_frozen
+        assert any("past 1,000 %" in m for m in msgs), msgs
+    else:
+        np.testing.assert_allclose(st.positions(), x, atol=1e-6)
+        assert s["self_diverged"] == 0 and s["self_fallback_all"] == 0
+        sc.frame_end()
+        assert not sc.frame_diverged
+
+
+def test_explicit_euler_far_past_its_stable_step_with_self_collision_stops_as_diverged():
+    """Explicit Euler forced to one step a frame at 24 fps (far past its stable step) on a
+    hanging sheet with self-collision: the run ends as diverged, naming the solver's steps,
+    within the frames the frozen-frame guard allows, instead of detecting over the exploded
+    paths (40-100 s a frame on the 32 x 32 sheet before `DIVERGED_STRAIN`)."""
+    from warp_cloth import SimulationDiverged
+    from warp_cloth.scenes import hanging
+
+    scene = hanging(solver="explicit", res=8, fps=24.0, frames=12, substeps=1,
+                    self_collision=True)
+    with pytest.raises(SimulationDiverged, match="the solver's steps diverged") as info:
+        scene.run(None, quiet=True, energy=False)
+    assert info.value.frame <= 6
+    assert scene.solver.collision.stats["self_diverged_total"] > 0

@@ -333,6 +333,17 @@ class Scene:
         if progress is None:
             progress = (not quiet) and sys.stderr.isatty()
         bar = _Progress(self.frames, progress, self.name)
+        stable = getattr(solver, "stable_dt", None)
+        if stable is not None and not quiet:
+            # explicit Euler given more than its stable step (`--substeps`): say so before it
+            # diverges (a step past the bound grows every mode above it each step)
+            sdt = float(stable(model))
+            if math.isfinite(sdt) and self.dt > sdt:
+                need = suggest_substeps(solver, 1.0 / self.fps)
+                bar.note(f"warning: {solver.name}: its step {self.dt:.3g} s is "
+                         f"{self.dt / sdt:.3g} times its stability bound {sdt:.3g} s: it will "
+                         f"diverge; {need} steps a frame keep it stable (leave the substeps "
+                         "to the solver)")
         writer = None
         mesh_path = None
         if out is not None:
@@ -444,7 +455,16 @@ class Scene:
                     if frozen >= FROZEN_FRAMES:
                         why = ("its steps tangle the cloth everywhere: an unstable step; more "
                                "substeps, or a smaller step, hold it")
-                        if locked >= FROZEN_FRAMES:
+                        if getattr(stage, "frame_diverged", False):
+                            # (`self_collision.DIVERGED_STRAIN`: measured, explicit Euler at
+                            # one step a frame at 24 fps on the hanging sheet, 231 times its
+                            # stable step: 40-100 s a frame before, 6 s to this message)
+                            why = (f"the solver's steps diverged: they stretched a mesh edge "
+                                   f"past 1,000 % or left a position not finite before the "
+                                   f"collision response, with up to "
+                                   f"{self.substeps << self.retries} steps a frame too; explicit "
+                                   "Euler: let it choose its substeps, or a smaller step")
+                        elif locked >= FROZEN_FRAMES:
                             # (the 16 x 16 twist from frame 287 under implicit Euler, with 8
                             # times the steps too; the default 49 x 49 runs through)
                             why = (f"run again with up to {self.substeps << self.retries} "

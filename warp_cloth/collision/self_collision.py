@@ -98,7 +98,7 @@ CCD_ITERATIONS = 64
 #: the counters of `SelfCollision.stats`, per step (and ``*_total``: summed over all steps)
 STAT_KEYS = ("self_contacts", "self_overflow", "self_zones", "self_zone_vertices",
              "self_fallback_all", "self_responses", "self_pinned", "self_zones_held",
-             "self_reused")
+             "self_reused", "self_diverged")
 # the counters the kernels write, by name (the order of STAT_KEYS is free)
 I_CONTACTS = wp.constant(STAT_KEYS.index("self_contacts"))
 I_OVERFLOW = wp.constant(STAT_KEYS.index("self_overflow"))
@@ -106,8 +106,10 @@ I_RESPONSES = wp.constant(STAT_KEYS.index("self_responses"))
 I_PINNED = wp.constant(STAT_KEYS.index("self_pinned"))
 I_ZONES = STAT_KEYS.index("self_zones")  # the impact zones write this slot and the next
 I_FALLBACK = STAT_KEYS.index("self_fallback_all")
+I_FALLBACK_C = wp.constant(I_FALLBACK)
 I_HELD = STAT_KEYS.index("self_zones_held")
 I_REUSED = wp.constant(STAT_KEYS.index("self_reused"))
+I_DIVERGED = wp.constant(STAT_KEYS.index("self_diverged"))
 if STAT_KEYS[I_ZONES + 1] != "self_zone_vertices":  # pragma: no cover - a layout invariant
     raise RuntimeError("STAT_KEYS: self_zone_vertices must follow self_zones")
 #: `SelfCollision.frame_end` warns (``frame_frozen``) when the rigid impact zones held this share
@@ -122,6 +124,15 @@ ALLOWANCE_STEPS = 8
 CLEAR_FULL_FRACTION = 0.25
 #: the fail-safe acts on paths that come this close (a fraction of the thickness)
 FAILSAFE_GAP = 0.05
+#: a response whose solve left a mesh edge stretched past this (1,000 %, the runner's default
+#: strain bound) or a position not finite meets a diverged step: it returns the whole cloth to
+#: its start without detecting anything (`SelfCollision.resolve`; counted as ``self_diverged``
+#: and ``self_fallback_all``). Detection on such paths, metres long, lists nearly every pair of
+#: the cloth: explicit Euler forced to one step a frame at 24 fps on the hanging sheet (231
+#: times its stable step) took 40-100 s a frame in the rounds' and zones' detections, whose
+#: rigid zones then held the exploding cloth below the strain bound, so the runner's guard
+#: never saw the divergence it stops within a second without self-collision
+DIVERGED_STRAIN = 10.0
 
 #: detections that grow the rigid impact zones before the whole cloth returns to its start
 #: (`SelfCollision`'s ``zone_passes``). Each pass runs only in a step whose rounds failed, and
@@ -619,6 +630,37 @@ def revert_kernel(rec: ContactRecord, x: wp.array(dtype=wp.vec3), v: wp.array(dt
             v[i] = wp.vec3(0.0)
     if t == 0:
         stats[slot] = stats[slot] + 1
+
+
+@wp.kernel
+def diverged_kernel(x: wp.array(dtype=wp.vec3), edges: wp.array(dtype=wp.int32, ndim=2),
+                    rest: wp.array(dtype=wp.vec4), bound: float, flag: wp.array(dtype=int)):
+    """``flag[0] = 1`` where a mesh edge is longer than ``1 + bound`` times its rest length or
+    not finite (`DIVERGED_STRAIN`)."""
+    e = wp.tid()
+    a = edges[e, 0]
+    b = edges[e, 1]
+    ra = rest[a]
+    rb = rest[b]
+    r = wp.length(wp.vec3(ra[0] - rb[0], ra[1] - rb[1], ra[2] - rb[2]))
+    d = wp.length(x[a] - x[b])
+    if not (d <= (1.0 + bound) * r):  # (a NaN fails every comparison)
+        flag[0] = 1
+
+
+@wp.kernel
+def revert_all_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                      x_start: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float),
+                      stats: wp.array(dtype=int)):
+    """A diverged step (`diverged_kernel`): every free vertex back at its start with zero
+    velocity, counted as a whole-cloth fall-back and as diverged."""
+    i = wp.tid()
+    if inv_mass[i] > 0.0:
+        x[i] = x_start[i]
+        v[i] = wp.vec3(0.0)
+    if i == 0:
+        stats[I_FALLBACK_C] = stats[I_FALLBACK_C] + 1
+        stats[I_DIVERGED] = stats[I_DIVERGED] + 1
 
 
 @wp.kernel
@@ -1329,6 +1371,7 @@ class SelfCollision:
         self.violated = wp.zeros(3, dtype=int, device=d)
         self._never = wp.zeros(1, dtype=int, device=d)
         self._flags = wp.zeros(3, dtype=int, device=d)  # round_end_kernel
+        self._diverged = wp.zeros(1, dtype=int, device=d)  # diverged_kernel
         self._zone_flags = wp.zeros(3, dtype=int, device=d)  # zone_pass_kernel
         self._no_pairs = wp.zeros(0, dtype=wp.vec2i, device=d)
         self._npairs = wp.zeros(1, dtype=int, device=d)
@@ -1819,10 +1862,23 @@ class SelfCollision:
         launch(step_begin_kernel, max(len(STAT_KEYS), 1),
                [self.done, self.violated, self._flags, self.counters], device=d)
         steps = self._one if steps is None else steps
+        # a diverged solve (`DIVERGED_STRAIN`): the whole cloth back, nothing detected
+        self._diverged.zero_()
+        launch(diverged_kernel, self.broad.num_edges,
+               [state.x, self.broad.edges, self.rest, DIVERGED_STRAIN, self._diverged], device=d)
+        wp.capture_if(self._diverged, on_true=self._revert_all, on_false=self._respond,
+                      state=state, x_start=x_start, dt=dt, steps=steps)
+        launch(accumulate_kernel, len(STAT_KEYS), [self.counters, self.totals], device=d)
+
+    def _respond(self, state, x_start, dt, steps):
         wp.capture_while(self._flags[1:2], self._round, state=state, x_start=x_start, dt=dt)
         wp.capture_if(self._flags[2:3], self._fallback, state=state, x_start=x_start, dt=dt,
                       steps=steps)
-        launch(accumulate_kernel, len(STAT_KEYS), [self.counters, self.totals], device=d)
+
+    def _revert_all(self, state, x_start, dt, steps):
+        m = self.model
+        launch(revert_all_kernel, m.num_vertices,
+               [state.x, state.v, x_start, m.inv_mass, self.counters], device=self.device)
 
     #: `step`'s ``obstacles`` callable (None: no obstacles)
     _obstacles = None
@@ -1836,6 +1892,9 @@ class SelfCollision:
     #: impact zones, or at least that share of them returned the whole cloth to its start (its
     #: steps tangle the cloth everywhere)
     frame_frozen = False
+    #: at least `FROZEN_SHARE` of the last frame's responses met a diverged solve
+    #: (`DIVERGED_STRAIN`)
+    frame_diverged = False
 
     def _round(self, state, x_start, dt):
         if self._incremental is None:
@@ -2067,13 +2126,23 @@ class SelfCollision:
         returned = int(t[i_all] - seen[i_all])
         standing = not zoned and bool(resp > 0 and returned >= FROZEN_SHARE * resp)
         self.frame_frozen = zoned or standing
+        i_div = STAT_KEYS.index("self_diverged")
+        diverged = int(t[i_div] - seen[i_div])
+        #: most of the frame's responses met a diverged solve (`DIVERGED_STRAIN`)
+        self.frame_diverged = bool(resp > 0 and diverged >= FROZEN_SHARE * resp)
+        if diverged:
+            out.append((f"self-collision: {diverged} of the frame's {resp} response(s) met a "
+                        f"solve that stretched a mesh edge past {100 * DIVERGED_STRAIN:,.0f} % "
+                        "or left a position not finite (a diverged step: an unstable solver "
+                        "step; explicit Euler: let it choose its substeps) and returned the "
+                        "whole cloth to its start without detecting", False))
         if zoned:
             out.append((f"self-collision moved on average {zv / resp:.0f} of the cloth's "
                         f"{self._free} free vertices as rigid impact zones in the frame's {resp} "
                         "response(s): most of the cloth was frozen into rigid bodies (its steps "
                         "tangle it everywhere: an unstable solver step, or cloth crushed into "
                         "itself)", False))
-        elif standing:
+        elif standing and returned > diverged:  # (a diverged frame's message says it)
             out.append((f"self-collision returned the whole cloth to its start in {returned} of "
                         f"the frame's {resp} response(s): the cloth was frozen (its steps "
                         "tangle it everywhere: an unstable solver step, or cloth crushed into "
@@ -2081,9 +2150,9 @@ class SelfCollision:
         # steps of the frame that returned the whole cloth to its start or dropped contacts:
         # the runner may run the frame again with more steps (`Scene`'s ``retries``)
         self.frame_failed = returned + int(t[i_over] - seen[i_over]) + int(self.frame_frozen)
-        if returned and not standing:  # (a standing frame's message above says it)
+        if returned > diverged and not standing:  # (the messages above say the others)
             out.append((f"self-collision returned the whole cloth to its start in "
-                        f"{returned} step(s): contacts the projection and the "
+                        f"{returned - diverged} step(s): contacts the projection and the "
                         "impact zones could not resolve", False))
         if t[i_over] > seen[i_over]:
             # at least doubled; by what was dropped (summed over the frame's detections: an

@@ -510,6 +510,9 @@ class CollisionStage:
     #: self-collision's rigid impact zones held most of the cloth in the last frame
     #: (`SelfCollision.frame_frozen`)
     frame_frozen = False
+    #: most of the last frame's self-collision responses met a solve that had diverged
+    #: (`SelfCollision.frame_diverged`)
+    frame_diverged = False
 
     def frame_end(self) -> list:
         """Called by the runner after each frame (host reads): ``(message, regrown)`` for each
@@ -534,6 +537,7 @@ class CollisionStage:
             out += self.self_collision.frame_end()
             self.frame_failed += self.self_collision.frame_failed
             self.frame_frozen = self.self_collision.frame_frozen
+            self.frame_diverged = self.self_collision.frame_diverged
         coupling = getattr(self, "solve_coupling", None)  # self-contacts inside a solve
         if coupling is not None:
             out += coupling.self_frame_end()
