@@ -331,3 +331,26 @@ def test_scenes_bench_measures_the_collision_checks(capsys):
         assert r["strain_ok"] == (r["max_strain"] <= 0.05 or r["max_strain"] <= 1.5 * ex)
     with pytest.raises(SystemExit):
         scenes.main(["--scenes", "hanging"])  # no obstacles
+
+
+def test_meshes_bench_checks_are_exact_and_find_what_self_collision_prevents(capsys):
+    """`bench meshes`: its own crossing test (float64 numpy, no simulator code) counts the
+    exact crossings of two triangles through each other; the irregular fold under PD is clean
+    with self-collision (exit 0) and crosses without it (exit 1), its count of crossing frames
+    equal to the run's own Warp checker's."""
+    from warp_cloth.bench import meshes
+
+    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0],
+                  [0.2, 0.2, -1], [0.2, 0.2, 1], [3, 3, 0.0]])
+    tris = np.array([[0, 1, 2], [3, 4, 5]])
+    assert meshes.segment_triangle_hits(x, meshes.edges_of(tris), x, tris, True) == 2
+    x[3:5, 0] += 2.0
+    assert meshes.segment_triangle_hits(x, meshes.edges_of(tris), x, tris, True) == 0
+    on = meshes.run_case("jitterfold", "pd", 40)
+    assert not meshes.failed(on) and on["crossing_frames"] == 0 and on["nan_frames"] == 0
+    assert abs(on["clearance"] - meshes.THICKNESS) < meshes.CLEARANCE_SLACK
+    off = meshes.run_case("jitterfold", "pd", 40, self_collision=False)
+    assert meshes.failed(off) and off["crossing_frames"] == off["run_crossing_frames"] > 0
+    rc = meshes.main(["--cases", "jitterfold", "--solver", "pd", "--frames", "40",
+                      "--self-collision", "off"])
+    assert rc == 1 and "| jitterfold | pd |" in capsys.readouterr().out

@@ -44,7 +44,7 @@ CONTACT_SCENES = ["drape", "table", "spin", "mesh", "thin", "fold", "stack"]
 SCENE_SOLVERS = {"fold": "pd", "twist": "pd", "stack": "pd"}
 CONTACT_OPTIONS = ["friction", "restitution", "thickness"]
 BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stability", "ccd", "limits",
-               "scale", "selfcollision", "render", "usd", "scenes"]
+               "scale", "selfcollision", "render", "usd", "scenes", "meshes"]
 
 # option -> (solver option name, solvers that accept it)
 SOLVER_OPTIONS = {
