@@ -2130,31 +2130,13 @@ def _irregular_fold(solver_name, self_collision=True, res=10, frames=60, seed=1)
     column (x = 0, moved along z only, so that no edge spans it and the fold keeps every
     length) lifted 150 degrees about it: it falls over onto the other half. Built through the
     public API, as a user's own mesh would be."""
-    import math
-
-    from warp_cloth import ClothModel, Scene, TriMesh, make_solver
+    from warp_cloth import ClothModel, Scene, make_solver
+    from warp_cloth.bench.meshes import _fold, jittered_grid
     from warp_cloth.collision import Plane
 
     thickness, size = 0.005, 0.6
-    rng = np.random.default_rng(seed)
-    g = TriMesh.grid(res, res, size=size, plane="xz", origin=(-size / 2, thickness, -size / 2))
-    v = g.vertices.copy()
-    inner = (np.abs(v[:, 0]) < size / 2 - 1e-9) & (np.abs(v[:, 2]) < size / 2 - 1e-9)
-    hinge = np.abs(v[:, 0]) < 1e-9
-    v[inner & ~hinge, 0] += rng.uniform(-0.3, 0.3, (inner & ~hinge).sum()) * size / res
-    v[inner, 2] += rng.uniform(-0.3, 0.3, inner.sum()) * size / res
-    v[hinge, 0] = 0.0
-    tris = []
-    for i in range(res):
-        for j in range(res):
-            a, b = i * (res + 1) + j, i * (res + 1) + j + 1
-            c, d = b + res + 1, a + res + 1
-            tris += [(a, b, c), (a, c, d)] if rng.random() < 0.5 else [(a, b, d), (b, c, d)]
-    mesh = TriMesh(v, np.array(tris))
-    x = v.copy()
-    up = x[:, 0] > 1e-9
-    r, a = x[up, 0], math.radians(150.0)
-    x[up, 0], x[up, 1] = r * math.cos(a), thickness + r * math.sin(a)
+    mesh = jittered_grid(res, size, seed, thickness, keep_column=0.0)
+    x = _fold(mesh.vertices, 0.0, 150.0, thickness)
     model = ClothModel(mesh, density=0.15, stretch_stiffness=1000.0, damping=0.1, device="cpu")
     model.initial_positions = x
     stage = CollisionStage(model, [Plane()], thickness=thickness, friction=0.4,
