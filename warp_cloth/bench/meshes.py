@@ -97,7 +97,7 @@ def build_case(name: str, big_res: int = 64):
     if name == "vertical":  # standing on its edge, leaning and waved: falls and buckles
         mesh = TriMesh.grid(18, 18, size=0.6, plane="xy", origin=(-0.3, th + 0.002, 0.0),
                             name="cloth")
-        return mesh, None, None, [Plane()]
+        return mesh, _vertical_start(mesh), None, [Plane()]
     if name == "holesphere":
         g = TriMesh.grid(24, 24, size=1.0, plane="xz", origin=(-0.5, 0.75, -0.5))
         v, t = g.vertices, g.triangles
@@ -232,7 +232,8 @@ def check_frames(frames, tris, obstacles) -> dict:
     from ..collision import MeshObstacle
 
     edges = edges_of(tris)
-    meshes = [(np.asarray(o.vertices, np.float64), np.asarray(o.triangles, np.int64))
+    meshes = [(np.asarray(o.vertices, np.float64), np.asarray(o.triangles, np.int64),
+               edges_of(np.asarray(o.triangles, np.int64)))
               for o in obstacles if isinstance(o, MeshObstacle) and not o.moving]
     crossing = nan = through = 0
     clearance, inside = math.inf, 0.0
@@ -250,9 +251,9 @@ def check_frames(frames, tris, obstacles) -> dict:
                 clearance = min(clearance, float(d.min()))
                 inside = max(inside, float(-_signed_distance(samples, ob).min()))
         hit = 0
-        for OV, OT in meshes:
+        for OV, OT, OE in meshes:
             hit += segment_triangle_hits(P, edges, OV, OT, False)
-            hit += segment_triangle_hits(OV, edges_of(OT), P, tris, False)
+            hit += segment_triangle_hits(OV, OE, P, tris, False)
         through += hit > 0
     return {"crossing_frames": crossing, "nan_frames": nan, "clearance": clearance,
             "inside": inside, "through_frames": through}
@@ -266,8 +267,6 @@ def run_case(name: str, solver: str, frames: int, self_collision: bool = True,
     from ..usd import read_points
 
     mesh, x0, pins, obstacles = build_case(name, big_res)
-    if name == "vertical":
-        x0 = _vertical_start(mesh)
     model = ClothModel(mesh, density=0.15, stretch_stiffness=1000.0, damping=0.1, pins=pins)
     if x0 is not None:
         model.initial_positions = x0
@@ -341,6 +340,8 @@ def main(argv=None) -> int:
         p.error(f"unknown case(s) {', '.join(bad)}; choose from {', '.join(CASES)}")
     if a.frames < 2:
         p.error("--frames must be at least 2")
+    if a.big_res < 2:
+        p.error("--big-res must be at least 2")
     if a.out_dir is not None:
         os.makedirs(a.out_dir, exist_ok=True)
     quiet_warp()
