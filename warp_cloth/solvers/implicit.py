@@ -951,6 +951,11 @@ class ImplicitEuler(Solver):
         # 1 while this step's contact records are empty (`ContactCoupling.mark_free`): a collision
         # stage with nothing near (a hanging sheet with self-collision on) is no contact
         self._free = wp.ones(1, dtype=int, device=d)
+        #: land a sliding vertex that Newton's direction would carry back past its friction
+        #: reference on that reference (`ContactCoupling.limit_reversals`; measured in
+        #: docs/bench/selfcollision.md); False: the plain Newton direction
+        self.limit_reversals = True
+        self._reversals = wp.zeros(1, dtype=int, device=d)
         self._no_int = wp.zeros(0, dtype=int, device=d)  # an empty flag: the world frame
         self._steady_now = False  # this step measures energy in the obstacles' steady frame
         self._fallbacks_seen = 0  # (`_frame_messages`, linear="cholesky")
@@ -1024,6 +1029,9 @@ class ImplicitEuler(Solver):
             self._stats["contacts_active"] = int(self._coupling.active.numpy()[0]
                                                  + self._coupling.self_active.numpy()[0])
             self._stats.update(self._coupling.self_stats)
+            # Newton directions that carried a sliding vertex back past its friction
+            # reference, landed on it instead (`ContactCoupling.limit_reversals`), over the run
+            self._stats["friction_landings_total"] = int(self._reversals.numpy()[0])
         if self.linear_name == "cholesky":  # applications without a factor, over the run
             self._stats["factor_fallbacks"] = self.linear.fallbacks
         if self._stats.get("smoothing_sweeps") and self._coupling is not None:
@@ -1221,6 +1229,8 @@ class ImplicitEuler(Solver):
                 inner += self.linear.iterations if fixed else int(info["iterations"])
             if not fixed and not info.get("converged", True):
                 inner_short += 1
+            if coupling is not None and self.limit_reversals:
+                coupling.limit_reversals(x, self.dx, dt, self._reversals)
             step = self._one
             switched = False
             if self.line_search:
