@@ -18,7 +18,7 @@ from warp_cloth.collision.record import (KIND_EDGE_EDGE, KIND_VERTEX_OBSTACLE,
 from warp_cloth.contact_scenes import sheet_model
 from warp_cloth.diagnostics import edge_strains
 from warp_cloth.limits import StrainLimit
-from warp_cloth.solvers.contact_coupling import ContactCoupling
+from warp_cloth.solvers.contact_coupling import ContactCoupling, normal_penalty
 
 PKG = os.path.dirname(os.path.abspath(warp_cloth.__file__))
 ABOVE = {"solvers", "scene", "scenes", "contact_scenes", "cli", "bench", "usd"}
@@ -313,11 +313,63 @@ def test_implicit_on_mesh_features_gains_no_energy_while_the_torus_rests():
     assert np.diff(E).max() < 1e-3, f"{np.diff(E).max():.2e} J in a frame"
 
 
-def test_self_contact_term_full_hessian_matches_finite_differences():
+@wp.kernel
+def _penalty_kernel(g: wp.array(dtype=float), k: float, onset: float,
+                    out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    f, kn, E = normal_penalty(k, g[i], onset)
+    out[i] = wp.vec3(f, kn, E)
+
+
+@pytest.mark.parametrize("onset", [0.0, 1.0e-3])
+def test_normal_penalty_is_c2_and_its_force_and_stiffness_are_its_derivatives(onset):
+    """`normal_penalty` at gaps across the surface and across the onset: its force is
+    ``-dE/dg`` and its stiffness ``-d(force)/dg`` (central differences, float32), nothing
+    acts at ``g >= 0``; with an onset the stiffness rises continuously from 0 at the surface to
+    ``k`` at the onset's depth and stays there (C2), and the energy is the plain quadratic's
+    moved ``onset / 2`` deeper, plus ``k onset^2 / 24``."""
+    k = 2.0e3
+    gs = np.array([2e-3, 0.0, -1e-4, -5e-4, -9.9e-4, -1.0e-3, -1.01e-3, -3e-3], np.float32)
+    h = 2.0e-6
+    allg = np.concatenate([gs, gs + h, gs - h]).astype(np.float32)
+    out = wp.zeros(len(allg), dtype=wp.vec3, device="cpu")
+    wp.launch(_penalty_kernel, len(allg), [wp.array(allg, dtype=float, device="cpu"), k,
+                                           onset, out], device="cpu")
+    r = out.numpy().astype(np.float64)
+    m = len(gs)
+    f, kn, E = r[:m].T
+    gp, gm = allg[m:2 * m].astype(np.float64), allg[2 * m:].astype(np.float64)
+    dEdg = (r[m:2 * m, 2] - r[2 * m:, 2]) / (gp - gm)
+    dfdg = (r[m:2 * m, 0] - r[2 * m:, 0]) / (gp - gm)
+    inside = gs < -h
+    np.testing.assert_allclose(f[inside], -dEdg[inside], rtol=1e-2, atol=1e-3 * k * 1e-3)
+    np.testing.assert_allclose(kn[inside], -dfdg[inside], rtol=1e-2, atol=1e-2 * k)
+    assert (r[:2] == 0.0).all()  # at and above the surface: nothing
+    s = -gs.astype(np.float64)
+    if onset == 0.0:
+        np.testing.assert_allclose(E[2:], 0.5 * k * s[2:] ** 2, rtol=1e-5)
+        assert (kn[2:] == k).all()
+    else:
+        cubic = (s > 0) & (s < onset)
+        np.testing.assert_allclose(kn[cubic], k * s[cubic] / onset, rtol=1e-4)
+        np.testing.assert_allclose(E[cubic], k * s[cubic] ** 3 / (6 * onset), rtol=1e-4)
+        deep = s > onset
+        np.testing.assert_allclose(E[deep], 0.5 * k * (s[deep] - onset / 2) ** 2
+                                   + k * onset ** 2 / 24, rtol=1e-4)
+        assert (kn[deep] == k).all()
+        # continuous across the onset: just inside and just past it
+        j, l = int(np.argmin(np.abs(gs + 9.9e-4))), int(np.argmin(np.abs(gs + 1.01e-3)))
+        assert abs(kn[j] - kn[l]) < 0.03 * k and abs(f[j] - f[l]) < 0.03 * k * onset
+
+
+@pytest.mark.parametrize("thickness", [None, 0.15])
+def test_self_contact_term_full_hessian_matches_finite_differences(thickness):
     """Self-contacts inside the Newton solve: the Hessian of the active multi-vertex entries
     (diagonal blocks in ``vblock`` plus the off-diagonal coupling of `pair_matvec_list_kernel`) is
     the Jacobian of their force, across vertices (central differences); inactive entries add
-    nothing. A pinned vertex is eliminated (no row, no column)."""
+    nothing. A pinned vertex is eliminated (no row, no column). With a thickness, the penalty's
+    onset (`SELF_ONSET` of it: 1.5 mm) holds the 1 mm deep entry in its cubic part and the 2 mm
+    deep one past it; the force is minus the gradient of the line search's energy too."""
     from types import SimpleNamespace
 
     model = sheet_model(res=3, size=0.3, pins=[15])  # 16 vertices
@@ -340,14 +392,31 @@ def test_self_contact_term_full_hessian_matches_finite_differences():
                                             nrm, -1.0, np.zeros(3), 0.0)]),
                            capacity=1, obstacles=[None], self_in_solve=True,
                            self_collision=SimpleNamespace(capacity=len(ents)))
+    if thickness is not None:
+        fake.self_collision.thickness = thickness
     cc = ContactCoupling(model, fake, stiffness=1e3)
     assert cc.self_record is not None
+    assert cc.self_onset == pytest.approx(0.0 if thickness is None else 1.5e-3)
     cc.self_record = rec
     dt = 1.0 / 100.0
 
     force = _newton_force(cc, n, dt)
-    force(x)
+    f0 = force(x)
     assert cc.self_on.numpy().tolist() == [1, 1, 0]  # the third is 1 mm apart
+    if thickness is not None:  # -grad of `energy` (float64 sums of float32 terms)
+        def energy(xh):
+            out = wp.zeros(1, dtype=wp.float64, device="cpu")
+            cc.energy(wp.array(xh.astype(np.float32), dtype=wp.vec3, device="cpu"), out, dt)
+            return float(out.numpy()[0])
+        g = np.zeros_like(x)
+        for i in range(n):
+            for c in range(3):
+                xp, xm = x.copy(), x.copy()
+                xp[i, c] += 1e-5
+                xm[i, c] -= 1e-5
+                g[i, c] = (energy(xp) - energy(xm)) / 2e-5
+        g[15] = 0.0  # the pinned vertex: no force
+        np.testing.assert_allclose(f0, -g, rtol=2e-2, atol=2e-3 * np.abs(f0).max())
     H, J = _hessian_and_jacobian(cc, force, x)
     J[45:48, :] = J[:, 45:48] = 0.0  # the pinned vertex 15: eliminated, as in the operator
     np.testing.assert_allclose(H, J, rtol=2e-2, atol=2e-3 * np.abs(J).max())

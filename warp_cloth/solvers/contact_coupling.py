@@ -107,6 +107,28 @@ external forces' step, and for ``x0`` the velocity's) to the predicted sliding a
 an incline above its friction angle started on friction's static branch and never slid, and
 below it got no normal force in its first step and slid.
 
+**Contacts that flip** (implicit Euler). An entry active only for ``g < 0`` has a stiffness
+that jumps from nothing to ``kappa m/dt^2`` at its constraint. Newton met that jump two ways,
+traced on the fold (`warp-cloth run fold --solver implicit`, 119 of its 120 frames had a step
+short of its tolerance). A resting self-contact's equilibrium lies its load over that
+stiffness inside, about 1e-6 m: a few float32 roundings of its gap, so thousands of the folded
+sheet's entries switched on and off between iterations (at frame 100 of the table, 1,000-17,000
+flips an iteration at gaps of 1e-7-1e-6 m). The self-contacts' penalty in Newton therefore
+starts with a cubic over its first `SELF_ONSET` of the thickness (`normal_penalty`: C2, the
+plain quadratic beyond, moved half the onset deeper), where a resting entry sits some 1e-5 m
+deep with a stiffness that varies smoothly; the obstacles' entries keep the plain quadratic
+(their sag and resting rules are tuned to it) and projective dynamics too (its matrix must be
+constant). And an entry just above its constraint has no block: Newton's direction drove its
+vertex in as if free, the contact energy rose at every line-search length (fold, frame 29:
++4.8e-3 J at the full step, +1.3e-5 J at 1/8) and the step stopped at 1/64 as stalled. So
+from a step's second assembly on, an entry within `RESTING_BAND` above its constraint whose
+gap shrank since the last assembly, or that was inside it then, keeps the penalty's block (no
+force; `HOLD_FLIPS`, the gaps kept per entry); one being lifted is not held, so nothing slows
+the cloth leaving a surface (holding every entry in the band at every assembly had cut the
+drape's converged steps by half). Frames with a short step at defaults, before -> after both:
+fold 101 -> 18, spin 80 -> 60, drape 28 -> 22, mesh 88 -> 75, table 118 -> 111, stack 67 -> 65
+(docs/bench/selfcollision.md).
+
 **Sag.** A penalty gives under load: a vertex pressed against a surface by the cloth's tension
 (the table's sides, held by the draped part) ends its solve about ``load dt^2 / (kappa m)``
 inside its target, 0.1-0.5 mm there, and the response after the solve (`CollisionStage.resolve`)
@@ -170,6 +192,15 @@ BATCH = 16
 #: target is raised (`ContactCoupling.end_step`); a deeper one, an impact the solve did not
 #: stop, is left to the response after the solve rather than pushed out by the next solve
 SAG_CAP = 0.2
+#: the self-contacts' penalty in Newton (implicit Euler) starts with a cubic over this fraction
+#: of their thickness (`normal_penalty`): the plain quadratic's stiffness jumps from 0 to
+#: kappa m/dt^2 at the surface, where a resting entry's equilibrium lies about 1e-6 m deep
+#: (its load over that stiffness), a few float32 roundings of its gap: thousands of a folded
+#: sheet's entries switched on and off between Newton iterations, and the steps stalled
+SELF_ONSET = 0.01
+#: Newton: an entry inside its constraint at one assembly and within `RESTING_BAND` above it
+#: at the next keeps the penalty's block there (module doc, *Contacts that flip*)
+HOLD_FLIPS = True
 
 
 @wp.func
@@ -182,9 +213,29 @@ def coulomb_energy(mu_lam: float, y: float, eps: float):
 
 
 @wp.func
+def normal_penalty(k: float, g: float, onset: float):
+    """The normal penalty of stiffness ``k`` at gap ``g`` (< 0: violated): (force along the
+    normal, stiffness, energy). ``onset == 0``: ``k g^2 / 2`` (its stiffness jumps from 0 to
+    ``k`` at ``g = 0``). ``onset > 0``: a cubic onset over the first ``onset`` of depth
+    (``s = -g``: ``k s^3 / (6 onset)``, stiffness ``k s / onset``), then the same quadratic
+    moved ``onset / 2`` deeper, matched in value, slope and stiffness (C2 in ``g``;
+    `SELF_ONSET`)."""
+    if g >= 0.0:
+        return 0.0, 0.0, 0.0
+    s = -g
+    if onset <= 0.0:
+        return k * s, k, 0.5 * k * s * s
+    if s < onset:
+        return 0.5 * k * s * s / onset, k * s / onset, k * s * s * s / (6.0 * onset)
+    d = s - 0.5 * onset
+    return k * d, k, 0.5 * k * d * d + k * onset * onset / 24.0
+
+
+@wp.func
 def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
                    inv_mass: wp.array(dtype=float), kappa_dt2: float, eps: float,
-                   lam: wp.array(dtype=float), num_sources: int, projective: float):
+                   lam: wp.array(dtype=float), num_sources: int, projective: float,
+                   onset: float):
     """Entry ``e`` at ``x``: (active, force on the weighted point ``sum w_j x_j``, its 3x3
     Hessian block, the normal penalty's part of that block, energy). Normal: the penalty where
     ``g < 0``; tangential (vertex-obstacle
@@ -223,11 +274,11 @@ def entry_response(rec: ContactRecord, e: int, x: wp.array(dtype=wp.vec3),
         return on, f, H, H, E
     nn = wp.outer(n, n)
     if g < 0.0:
-        k = kappa_dt2 / im
+        fn, kn, En = normal_penalty(kappa_dt2 / im, g, onset)
         on = True
-        f = (-k * g) * n
-        H = k * nn
-        E = 0.5 * k * g * g
+        f = fn * n
+        H = kn * nn
+        E = En
     Hn = H
     if rubs:
         i = rec.vertex[e][0]
@@ -452,6 +503,8 @@ def newton_contact_kernel(
     pw: wp.array(dtype=wp.vec4),
     pn: wp.array(dtype=wp.vec4),
     packed: wp.array(dtype=int),
+    onset: float,
+    pen: wp.array(dtype=float),
 ):
     """Active entries: their force ``-grad E_c`` into ``b``; their blocks into ``diag`` and
     ``vblock`` (``w_j^2 H``), the normal penalty's alone into ``nblock`` (for the residual);
@@ -459,18 +512,27 @@ def newton_contact_kernel(
     activity (the off-diagonal part of the multi-vertex entries' Hessian, `pair_matvec_list_kernel`);
     with ``pv`` arrays, each active entry packed (`pack_entry`, counted in ``packed[0]``).
 
-    With ``resting`` (the step's first assembly, `ContactCoupling.resting`): an entry within `RESTING_BAND` above its constraint is active too, with the penalty's block
-    and no force (module doc, *Resting contact*)."""
+    With ``resting`` 1 (the step's first assembly, `ContactCoupling.resting`): an entry within
+    `RESTING_BAND` above its constraint is active too, with the penalty's block and no force
+    (module doc, *Resting contact*); with ``resting`` 2 (a later assembly), only such an entry
+    that was inside its constraint at the last assembly (``pen``, written here for the next:
+    module doc, *Contacts that flip*)."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
         on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources,
-                                         0.0)
+                                         0.0, onset)
         vid = rec.vertex[e]
         w = rec.weight[e]
-        if resting != 0:
+        if resting != 0 or pen.shape[0] > 0:
             g, im = entry_gap(rec, e, x, inv_mass)
-            if g >= 0.0 and g < RESTING_BAND and im > 0.0 and not pin_held(vid, w, inv_mass):
+            hold = resting == 1
+            if pen.shape[0] > 0:
+                if resting == 2:
+                    hold = g < pen[e] or pen[e] < 0.0
+                pen[e] = g
+            if (hold and g >= 0.0 and g < RESTING_BAND and im > 0.0
+                    and not pin_held(vid, w, inv_mass)):
                 n = rec.normal[e]
                 on = True
                 hn = (kappa_dt2 / im) * wp.outer(n, n)
@@ -479,7 +541,9 @@ def newton_contact_kernel(
         if on_out.shape[0] > 0:
             on_out[e] = int(on)
         if on and pv.shape[0] > 0:
-            pack_entry(rec, e, inv_mass, pv, pw, pn, packed)
+            # the normal stiffness over kappa/dt^2 (an entry in its onset: below 1/im)
+            pack_entry(rec, e, inv_mass, pv, pw, pn, packed,
+                       (Hn[0, 0] + Hn[1, 1] + Hn[2, 2]) / kappa_dt2)
         if on:
             for j in range(4):
                 v = vid[j]
@@ -579,11 +643,12 @@ def list_on_kernel(rec: ContactRecord, on: wp.array(dtype=int), min_vertices: in
 @wp.func
 def pack_entry(rec: ContactRecord, e: int, inv_mass: wp.array(dtype=float),
                pv: wp.array(dtype=wp.vec4i), pw: wp.array(dtype=wp.vec4),
-               pn: wp.array(dtype=wp.vec4), n: wp.array(dtype=int)):
+               pn: wp.array(dtype=wp.vec4), n: wp.array(dtype=int), stiffness: float):
     """An active self-contact entry packed for `pair_matvec_packed_kernel` (by the assembly
     that finds it active: `newton_contact_kernel`, `pd_contact_kernel`): its free vertices
     (``pv``, -1 for a pinned or unused one), their weights (``pw``, 0 there) and its normal
-    with ``1 / sum_j w_j^2 m_j^-1`` (``pn``; an entry with no free vertex is left out). The
+    with ``stiffness``, its normal penalty's stiffness over ``kappa / dt^2`` (negative: ``1 /
+    sum_j w_j^2 m_j^-1``, the full penalty's) (``pn``; an entry with no free vertex is left out). The
     product that runs every inner iteration then reads one entry's data in three loads instead
     of walking the record and the inverse masses (`pair_matvec_entry`), and no pass over the
     record lists the active entries."""
@@ -604,7 +669,10 @@ def pack_entry(rec: ContactRecord, e: int, inv_mass: wp.array(dtype=float),
         if k < pv.shape[0]:
             pv[k] = v
             pw[k] = c
-            pn[k] = wp.vec4(nrm[0], nrm[1], nrm[2], 1.0 / im)
+            c_k = stiffness
+            if c_k < 0.0:
+                c_k = 1.0 / im
+            pn[k] = wp.vec4(nrm[0], nrm[1], nrm[2], c_k)
 
 
 @wp.kernel
@@ -764,6 +832,7 @@ def contact_line_energy_kernel(
     num_threads: int,
     out: wp.array(dtype=wp.float64),
     slot: int,
+    onset: float,
 ):
     """``E_c`` (with the friction potential) at ``x`` into ``out[slot]`` (float64) and, with a
     direction ``dx`` (none: an empty array), at ``x + a_c d`` (``a_c = steps[c]``, ``d = free *
@@ -804,9 +873,7 @@ def contact_line_energy_kernel(
             if c > 0:
                 a = steps[c - 1]
             g = g0 + a * gd
-            E = float(0.0)
-            if g < 0.0:
-                E = 0.5 * k * g * g
+            fn, kn, E = normal_penalty(k, g, onset)
             if lam_i > 0.0:  # a vertex entry: its tangential displacement at the candidate
                 i = vid[0]
                 d = x[i] - rec.ref[e]
@@ -857,11 +924,11 @@ def pd_contact_kernel(
             if slide[e] != 0:
                 weight = slide_weight
         on, f, H, Hn, E = entry_response(rec, e, x, inv_mass, kappa_dt2, eps, lam, num_sources,
-                                         weight)
+                                         weight, 0.0)
         if on_out.shape[0] > 0:
             on_out[e] = int(on)
         if on and pv.shape[0] > 0:
-            pack_entry(rec, e, inv_mass, pv, pw, pn, packed)
+            pack_entry(rec, e, inv_mass, pv, pw, pn, packed, -1.0)
         if on:
             vid = rec.vertex[e]
             w = rec.weight[e]
@@ -1059,6 +1126,7 @@ class ContactCoupling:
                          wp.zeros(0, dtype=wp.vec4, device=self.device),
                          wp.zeros(0, dtype=wp.vec4, device=self.device), self._no_flags)
         self._no_vec = wp.zeros(0, dtype=wp.vec3, device=self.device)
+        self._no_gaps = wp.zeros(0, dtype=float, device=self.device)
         #: Newton's resting-contact rule (`newton_contact_kernel`'s ``resting``): set by implicit
         #: Euler when its guess leaves the external forces' step out (a resting vertex then
         #: starts on its surface, where its penalty is not yet active)
@@ -1076,7 +1144,10 @@ class ContactCoupling:
         # activity at the last assembly, and the off-diagonal Hessian as an operator term
         sc = getattr(stage, "self_collision", None)
         self.self_record = None
+        #: m: the self-contacts' penalty onset in Newton (`normal_penalty`, `SELF_ONSET`)
+        self.self_onset = 0.0
         if sc is not None and getattr(stage, "self_in_solve", False):
+            self.self_onset = SELF_ONSET * float(getattr(sc, "thickness", 0.0))
             from ..collision.record import make_record
 
             self._dt = 1.0
@@ -1123,6 +1194,7 @@ class ContactCoupling:
         sc = self.stage.self_collision  # (None, or in_solve off, when switched off since)
         self.self_record.count.zero_()
         self.self_record.overflow.zero_()
+        self.self_pen.fill_(float("nan"))  # new entries: no last gap, none held (NaN compares false)
         if sc is not None and self.stage.self_in_solve:
             gap = sc.thickness + self.stage.self_solve_margin
             sc.detect(x_start, x_end, gap, self.self_record)
@@ -1140,20 +1212,25 @@ class ContactCoupling:
         self.self_list_n.zero_()
 
     # ------------------------------------------------------------------ Newton
-    def add_newton(self, x, b, diag, dt: float, resting: bool = False) -> None:
+    def add_newton(self, x, b, diag, dt: float, resting: bool = False,
+                   first: bool = True) -> None:
         """Active entries' force into ``b`` and Hessian blocks into ``diag`` and `vblock`
         (which this clears first: call once per Newton assembly, after ``diag`` is set);
         ``resting``: the entries resting on their constraints too (module doc, *Resting
-        contact*; a step's first assembly)."""
+        contact*; a step's first assembly). A later assembly (``first`` False) gives the
+        penalty's block to an entry within `RESTING_BAND` above its constraint that was inside
+        it at the last assembly (module doc, *Contacts that flip*; `HOLD_FLIPS`)."""
         self.vblock.zero_()
         self.nblock.zero_()
         self.active.zero_()
         self.self_active.zero_()
+        mode = 1 if resting and first else (0 if first or not HOLD_FLIPS else 2)
         launch(newton_contact_kernel, self.threads,
                [self.record, x, self.model.inv_mass, *self._args(dt), b, diag, self.vblock,
                 self.nblock, self.active,
-                self.pairs_on if self.pairs_on is not None else self._no_flags, int(resting),
-                *self._no_pack], device=self.device)
+                self.pairs_on if self.pairs_on is not None else self._no_flags, mode,
+                *self._no_pack, 0.0, self.pen if HOLD_FLIPS else self._no_gaps],
+               device=self.device)
         if self.pairs_on is not None:  # the active feature pairs, listed for `matvec_add`
             self.pairs_list_n.zero_()
             launch(list_on_kernel, self.threads,
@@ -1165,7 +1242,8 @@ class ContactCoupling:
             launch(newton_contact_kernel, self.self_threads,
                    [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
                     self.self_threads, b, diag, self.vblock, self.nblock, self.self_active,
-                    self.self_on, int(resting), *self._self_pack], device=self.device)
+                    self.self_on, mode, *self._self_pack, self.self_onset,
+                    self.self_pen if HOLD_FLIPS else self._no_gaps], device=self.device)
 
     def limit_reversals(self, x, dx, dt: float, count) -> None:
         """Newton's direction ``dx`` at ``x`` with every sliding vertex that it would carry
@@ -1201,6 +1279,8 @@ class ContactCoupling:
         cap = int(record.vertex.shape[0])
         self.threads = record_threads(cap, self.device, BATCH)
         self.slide = wp.zeros(max(cap, 1), dtype=int, device=self.device)
+        # per entry: inside its constraint at the last Newton assembly (`newton_contact_kernel`)
+        self.pen = wp.zeros(max(cap, 1), dtype=float, device=self.device)
         self.pairs_on = (wp.zeros(max(cap, 1), dtype=int, device=self.device)
                          if self._feature_pairs else None)
         # the active entries of several cloth vertices, listed at each Newton assembly
@@ -1216,6 +1296,7 @@ class ContactCoupling:
 
         self.self_record = make_record(int(capacity), self.device)
         self.self_on = wp.zeros(int(capacity), dtype=int, device=self.device)
+        self.self_pen = wp.zeros(int(capacity), dtype=float, device=self.device)
         # the active entries, packed by the assembly that finds them active (`pack_entry`)
         self.self_list_n = wp.zeros(1, dtype=int, device=self.device)
         self._self_pack = (wp.zeros(int(capacity), dtype=wp.vec4i, device=self.device),
@@ -1293,11 +1374,12 @@ class ContactCoupling:
         candidates, without their positions (`contact_line_energy_kernel`)."""
         launch(contact_line_energy_kernel, self.threads,
                [self.record, x, dx, free, steps, self.model.inv_mass, *self._args(dt), out,
-                slot], device=self.device)
+                slot, 0.0], device=self.device)
         if self.self_record is not None:
             launch(contact_line_energy_kernel, self.self_threads,
                    [self.self_record, x, dx, free, steps, self.model.inv_mass,
-                    *self._args(dt)[:-1], self.self_threads, out, slot], device=self.device)
+                    *self._args(dt)[:-1], self.self_threads, out, slot, self.self_onset],
+                   device=self.device)
 
     def end_step(self, x, v, dt: float, time=None) -> None:
         """After the solve: the normal forces for the next step's friction (bounded by the load

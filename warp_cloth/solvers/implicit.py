@@ -1061,7 +1061,7 @@ class ImplicitEuler(Solver):
         vb = (A.diag_inv, 0)  # (any mat33 array, flag): no contact term
         if contact and self._coupling is not None and self.collision is not None:
             self._coupling.add_newton(x, self.b, A.diag, self._dt,
-                                      resting=self._coupling.resting and slot == 0)
+                                      resting=self._coupling.resting, first=slot == 0)
             vb = (self._coupling.nblock, 1)
         if hessian:
             if self.linear_name == "cholesky":
