@@ -231,7 +231,13 @@ def test_a_response_that_over_stretches_runs_the_frame_again():
     landing steps end the solve within a few percent, but the self-collision response (normals
     taken where pairs met, 9 cm of travel a step) left edges at up to 84 %. Such a response
     is counted (``response_stretched``, `stage.STRETCH_AFTER`, `STRETCH_RISE`) and the frame runs again
-    with more steps: the landing then stays within 5 %, nothing crossing."""
+    with more steps, as does a frame whose solve stopped short of its tolerance with the cloth
+    stretched past `scene.RETRY_STRAIN` (Newton at its cap, its inner solves at theirs): the
+    landing then stays within 8 %, nothing crossing (4.3 %; 15.7 % without the solve's rule).
+    The landing is chaotic: over eight curtains, ``_irregular_curtain(seed)`` for seeds 0-7,
+    it ended at 2.1-11.8 % max strain, 5.2 % on average (4.3-19.7 %, 11.3 %, without the
+    solve's rule; before it and Newton's friction landings and self-contact onset, 4.2-10.6 %,
+    7.0 %, this curtain at 4.85 %)."""
     import warp_cloth as wc
     from warp_cloth.collision import CollisionStage
     from warp_cloth.collision.obstacles import Plane
@@ -249,7 +255,7 @@ def test_a_response_that_over_stretches_runs_the_frame_again():
 
     st, stretched = run(2)
     assert st.crossing_frames == 0
-    assert st.retried_frames >= 1 and st.max_strain < 0.05, (st.retried_frames, st.max_strain)
+    assert st.retried_frames >= 1 and st.max_strain < 0.08, (st.retried_frames, st.max_strain)
     st, stretched = run(0)  # without the frames run again
     assert st.crossing_frames == 0 and stretched >= 1 and st.max_strain > 0.3
 
@@ -294,3 +300,38 @@ def test_stretch_check_counts_a_response_that_stretches_an_edge():
     assert stage.frame_failed == 1 and any("stretched 2 mesh edge" in m for m, _ in msgs)
     assert stage.stats["response_stretched"] == 2
     assert stage.frame_end() == [] and stage.frame_failed == 0  # reported once
+
+
+def test_a_short_solve_that_stretches_the_cloth_runs_the_frame_again():
+    """`Scene._solve_stretched`, the rule that runs a frame again for a solver that solves to a
+    tolerance: only when a step of the attempt ended short of it (the solver's
+    ``short_steps_total`` past the frame's start), the largest strain ends above
+    `RETRY_STRAIN` and rose by more than `RETRY_STRAIN_RISE` in the frame."""
+    from types import SimpleNamespace
+
+    import warp_cloth as wc
+    from warp_cloth import scene as scene_mod
+    from warp_cloth.diagnostics import Meter
+
+    model = wc.ClothModel(wc.TriMesh.grid(4, 4, size=0.4, plane="xz"))
+    solver = SimpleNamespace(short_steps_total=3, name="implicit")
+    sc = wc.Scene(model, wc.make_solver("explicit", model), frames=2)
+    sc.solver = solver
+    meter = Meter(model)
+    x0 = model.state().positions()
+
+    def state(stretch):  # every edge stretched by ``stretch``
+        st = model.state()
+        st.x.assign((x0 * (1.0 + stretch)).astype(np.float32))
+        return st
+
+    lo, hi = scene_mod.RETRY_STRAIN, scene_mod.RETRY_STRAIN_RISE
+    start, end = state(0.01), state(lo + 0.01)
+    s = sc._solve_stretched(end, start, meter, short0=2)
+    assert s is not None and s[0] == pytest.approx(0.01, abs=1e-4)
+    assert s[1] == pytest.approx(lo + 0.01, abs=1e-4)
+    assert sc._solve_stretched(end, start, meter, short0=3) is None  # no step short
+    assert sc._solve_stretched(state(lo - 0.005), start, meter, short0=2) is None  # below
+    assert sc._solve_stretched(end, state(lo + 0.01 - hi + 0.005), meter, short0=2) is None
+    solver.short_steps_total = None  # a solver without a tolerance: never
+    assert sc._solve_stretched(end, start, meter, short0=0) is None

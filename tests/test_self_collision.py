@@ -682,8 +682,8 @@ def test_implicit_newton_converges_through_a_fold_landing_on_itself():
     so Newton's direction drove its vertex deep in and the line search cut the step to 1/64
     (the contact energies rose by 4.8e-3 J at the full step): an entry moving toward its
     constraint, or inside it at the last assembly, now keeps the penalty's block there
-    (`HOLD_FLIPS`). Short steps: 91 of 120 with neither, 64 without the hold, 49 without the
-    onset, 23 with both."""
+    (`HOLD_FLIPS`, self-contacts). Short steps: 91 of 120 with neither, 49 without the hold,
+    40 without the onset, 25 with both."""
     scene = fold(solver="implicit", res=12)
     solver, stage = scene.solver, scene.collision
     state = scene.model.state()
@@ -780,7 +780,10 @@ def test_implicit_curtain_landing_at_speed_keeps_its_stretch():
     assert stats.crossing_frames == 0
     assert solver.stats["impact_steps"] > 0  # the landing's steps went on
     assert stats.max_strain < 0.05, stats.max_strain
-    assert scene.state.positions()[:, 1].max() < 0.3  # landed and piled up (its top fell 1.7 m)
+    # landed and piled up: its top (2.02 m at the start) fell more than 1.65 m. (How the pile
+    # stands at frame 30 is chaotic: its top edge leaned at 0.12-0.32 m from run to run of
+    # slightly different code, toppling by frame 80 where it leaned; `/tmp/s27/curt.py`)
+    assert scene.state.positions()[:, 1].max() < 0.35
 
 
 def test_implicit_folded_sheet_at_rest_does_not_pop():

@@ -956,12 +956,13 @@ class ImplicitEuler(Solver):
         #: docs/bench/selfcollision.md); False: the plain Newton direction
         self.limit_reversals = True
         self._reversals = wp.zeros(1, dtype=int, device=d)
+        self._dx_newton = wp.zeros(n, dtype=wp.vec3, device=d)  # dx before the landings
         self._no_int = wp.zeros(0, dtype=int, device=d)  # an empty flag: the world frame
         self._steady_now = False  # this step measures energy in the obstacles' steady frame
         self._fallbacks_seen = 0  # (`_frame_messages`, linear="cholesky")
         self._guard = {"extended": 0, "gained": 0, "new": 0, "last": 0.0, "rejected": 0,
                        "steady": 0, "impact": 0,
-                       "clamped": 0, "gradient": 0, "scale": 1.0}
+                       "clamped": 0, "gradient": 0, "scale": 1.0, "unlanded": 0}
         self.residuals = wp.zeros(self._k_total + 1, dtype=wp.float32, device=d)
         self.dx_max = wp.zeros(self._k_total + 1, dtype=wp.float32, device=d)
         if self.trace:
@@ -1042,6 +1043,12 @@ class ImplicitEuler(Solver):
     @stats.setter
     def stats(self, value):
         self._stats = value
+
+    @property
+    def short_steps_total(self) -> int:
+        """Steps that ended short of the tolerance (above the float32 floor) since the solver
+        was made: `Scene` compares it before and after a frame (`scene.RETRY_STRAIN`)."""
+        return int(self._short["steps"])
 
     # ------------------------------------------------------------------ assembly
     def _assemble(self, x, slot: int, hessian: bool = True, contact: bool = True):
@@ -1229,13 +1236,22 @@ class ImplicitEuler(Solver):
                 inner += self.linear.iterations if fixed else int(info["iterations"])
             if not fixed and not info.get("converged", True):
                 inner_short += 1
-            if coupling is not None and self.limit_reversals:
+            landed = coupling is not None and self.limit_reversals
+            if landed:
+                wp.copy(self._dx_newton, self.dx)
                 coupling.limit_reversals(x, self.dx, dt, self._reversals)
             step = self._one
             switched = False
             if self.line_search:
                 strict = guard_ls
                 self._line_search(x, k, 1.0, strict)
+                if landed and strict and float(self._ls_taken.numpy()[k]) == 0.0:
+                    # the landings' direction raised F at every length (a landed vertex that
+                    # its other forces drive on past its reference, against the springs):
+                    # Newton's own direction, which descends
+                    wp.copy(self.dx, self._dx_newton)
+                    self._line_search(x, k, 1.0, strict)
+                    self._guard["unlanded"] += 1
                 if strict and float(self._ls_taken.numpy()[k]) == 0.0:
                     # every step raised F: shorter ones, then (Jacobi / Chebyshev) CG
                     self._line_search(x, k, LS_RETRY, 1)
@@ -1349,6 +1365,8 @@ class ImplicitEuler(Solver):
         self._stats["energy_gain_steps"] = self._guard["gained"]
         self._stats["energy_clamped_steps"] = self._guard["clamped"]
         self._stats["gradient_steps"] = self._guard["gradient"]
+        # iterations whose friction landings raised F at every length: Newton's own direction
+        self._stats["unlanded_iterations"] = self._guard["unlanded"]
         self._stats["ls_rejected"] = self._guard["rejected"]
         self._stats["inner_short_total"] = self._short["inner"]
         if self.linear_name == "chebyshev":
