@@ -313,6 +313,42 @@ def test_implicit_on_mesh_features_gains_no_energy_while_the_torus_rests():
     assert np.diff(E).max() < 1e-3, f"{np.diff(E).max():.2e} J in a frame"
 
 
+@pytest.mark.parametrize("push", [0.5, 2.0])
+def test_residual_block_of_a_statically_held_vertex_includes_friction_inside_the_cone(push):
+    """The block by which implicit Euler measures a contact vertex's residual (``nblock``,
+    `implicit.vertex_residual`): the normal penalty's, and friction's too where the vertex
+    sits on its static branch with the cloth's other forces inside the cone (its answer sticks,
+    and its imbalance is the position change that block allows); pushed past the cone, the
+    friction's block stays out, so an imbalance that must become a slide is measured whole."""
+    model = sheet_model(res=1, size=0.1)  # 4 vertices
+    n = model.num_vertices
+    x = np.zeros((n, 3))
+    x[:, 0] = np.arange(n) * 0.1
+    nrm = np.array([0.0, 1.0, 0.0])
+    dt = 1.0 / 100.0
+    eps = 1e-4 * dt
+    mu, lam = 0.4, 1e-2
+    ref = x[0] - np.array([0.3 * eps, 0.0, 0.0])  # static branch
+    rec = _record([(KIND_VERTEX_OBSTACLE, [0, -1, -1, -1], [1, 0, 0, 0], nrm,
+                    float(nrm @ x[0] + 1e-4), ref, mu)])
+    cc = ContactCoupling(model, _Stage(rec, 1), stiffness=1e3)
+    lams = np.zeros(n, dtype=np.float32)
+    lams[0] = lam
+    cc.lam.assign(lams)
+    b0 = np.zeros((n, 3), dtype=np.float32)
+    b0[0] = [0.0, 0.0, push * mu * lam]  # the cloth's other forces on vertex 0, tangential
+    b = wp.array(b0, dtype=wp.vec3, device="cpu")
+    cc.add_newton(wp.array(x.astype(np.float32), dtype=wp.vec3, device="cpu"), b,
+                  wp.zeros(n, dtype=wp.mat33, device="cpu"), dt)
+    N = cc.nblock.numpy()[0].astype(np.float64)
+    assert N[1, 1] > 0.0  # the normal penalty, always
+    static = mu * lam * 2.0 / eps  # friction's static stiffness near u = 0
+    if push < 1.0:
+        assert N[2, 2] == pytest.approx(static, rel=0.35)
+    else:
+        assert N[2, 2] == 0.0 and N[0, 0] == 0.0
+
+
 @wp.kernel
 def _penalty_kernel(g: wp.array(dtype=float), k: float, onset: float,
                     out: wp.array(dtype=wp.vec3)):

@@ -549,6 +549,21 @@ def newton_contact_kernel(
             # the normal stiffness over kappa/dt^2 (an entry in its onset: below 1/im)
             pack_entry(rec, e, inv_mass, pv, pw, pn, packed,
                        (Hn[0, 0] + Hn[1, 1] + Hn[2, 2]) / kappa_dt2)
+        # the residual's block (`implicit.vertex_residual`): the normal penalty's, and the
+        # friction's too where the vertex sits on its static branch with the other forces
+        # assembled so far (the cloth's, without this entry's) inside the cone: its answer
+        # sticks, and its imbalance is measured by the position change its block allows
+        Hr = Hn
+        if on and rec.kind[e] == KIND_VERTEX_OBSTACLE and rec.friction[e] > 0.0:
+            i = vid[0]
+            lam_i = lam[i * num_sources + rec.source[e]]
+            if lam_i > 0.0:
+                n = rec.normal[e]
+                d = x[i] - rec.ref[e]
+                u = d - wp.dot(d, n) * n
+                bt = b[i] - wp.dot(b[i], n) * n
+                if wp.length(u) < eps and wp.length(bt) <= rec.friction[e] * lam_i:
+                    Hr = H
         if on:
             for j in range(4):
                 v = vid[j]
@@ -557,7 +572,7 @@ def newton_contact_kernel(
                     h = (w[j] * w[j]) * H
                     wp.atomic_add(diag, v, h)
                     wp.atomic_add(vblock, v, h)
-                    wp.atomic_add(nblock, v, (w[j] * w[j]) * Hn)
+                    wp.atomic_add(nblock, v, (w[j] * w[j]) * Hr)
             wp.atomic_add(active, 0, 1)
 
 

@@ -310,8 +310,12 @@ def vertex_residual(b: wp.vec3, w: float, dt2: float, vblock: wp.array(dtype=wp.
     """``dt^2 b_i / m_i``, the position change the residual force makes in a step; for a vertex
     with an active contact penalty ``(M/dt^2 + C_i)^-1 b_i`` (``C_i``: the penalty's normal
     block), so a contact's stiff force is measured by the position change it makes, not by
-    1 + kappa times it (`contact_coupling`). Friction's tangential stiffness is left out: its
-    static branch is so stiff that it would hide any tangential imbalance."""
+    1 + kappa times it (`contact_coupling`). Friction's tangential stiffness is left out (its
+    static branch is so stiff that it would hide any tangential imbalance) except where the
+    vertex sits on the static branch with the cloth's other forces inside the cone
+    (`newton_contact_kernel`): there the answer sticks, and what is left of the imbalance is
+    the position change that block allows (measured: short frames at defaults, spin 92 -> 81,
+    mesh 89 -> 61, drape 34 -> 25, fold 24 -> 20, table 103, stack 58 -> 61)."""
     r = (dt2 * w) * b
     if contact != 0:
         C = vblock[i]
