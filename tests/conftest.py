@@ -49,3 +49,26 @@ def _run_metered(scene, **run_kw):
 def run_metered():
     """`_run_metered`: a scene's per-frame energy and max strain."""
     return _run_metered
+
+
+def _short_steps(scene, frames: int):
+    """Step ``scene`` (its solver and collision stage, from the model's start) for ``frames``
+    frames of ``scene.substeps`` steps and return ``(short, steps, state)``: how many steps
+    ended short of the solver's tolerance (``stats["converged"]`` false), of how many."""
+    solver, stage = scene.solver, scene.collision
+    state = scene.model.state()
+    stage.plan(scene.substeps)
+    short = steps = 0
+    for _ in range(frames):
+        for _ in range(scene.substeps):
+            solver.step(state, scene.dt)
+            steps += 1
+            short += not solver.stats["converged"]
+        stage.frame_end()
+    return short, steps, state
+
+
+@pytest.fixture
+def short_steps():
+    """`_short_steps`: a scene's steps that ended short of the solver's tolerance."""
+    return _short_steps

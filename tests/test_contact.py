@@ -329,7 +329,7 @@ def test_incline_friction_with_guesses_without_the_gravity_step(guess, ratio):
     _incline("implicit", ratio, initial_guess=guess)
 
 
-def test_implicit_newton_lands_vertices_it_would_carry_back_past_static_friction():
+def test_implicit_newton_lands_vertices_it_would_carry_back_past_static_friction(short_steps):
     """A 12 x 12 sheet draped over a sphere with friction (the ``drape`` scene), 60 frames of
     implicit Euler: a vertex on friction's sliding branch has no stiffness along its slide, so
     the Newton step computed with the constant force ``mu lam`` carries it back past its
@@ -339,17 +339,8 @@ def test_implicit_newton_lands_vertices_it_would_carry_back_past_static_friction
     (`friction_reversal_kernel`, counted) leaves 14."""
     from warp_cloth.contact_scenes import drape
     scene = drape(solver="implicit", res=12)
-    solver, stage = scene.solver, scene.collision
-    state = scene.model.state()
-    stage.plan(scene.substeps)
-    short = steps = 0
-    for _ in range(60):
-        for _ in range(scene.substeps):
-            solver.step(state, scene.dt)
-            steps += 1
-            short += not solver.stats["converged"]
-        stage.frame_end()
-    assert solver.stats["friction_landings_total"] > 0
+    short, steps, state = short_steps(scene, 60)
+    assert scene.solver.stats["friction_landings_total"] > 0
     assert short <= 0.2 * steps, (short, steps)
     assert np.isfinite(state.positions()).all()
 

@@ -672,7 +672,7 @@ def test_self_contacts_inside_the_solve_keep_a_fold_calm(solver_name):
     assert out[False][0] > 5 * rise, out  # the same fold, self-contacts after the solve only
 
 
-def test_implicit_newton_converges_through_a_fold_landing_on_itself():
+def test_implicit_newton_converges_through_a_fold_landing_on_itself(short_steps):
     """The 12 x 12 fold under implicit Euler, 60 frames (the sheet lands on the floor and on
     itself): most steps converge. Two things had stalled them. A resting self-contact's
     equilibrium lay about 1e-6 m inside its constraint, where float32 roundings of its gap
@@ -685,16 +685,7 @@ def test_implicit_newton_converges_through_a_fold_landing_on_itself():
     (`HOLD_FLIPS`, self-contacts). Short steps: 91 of 120 with neither, 49 without the hold,
     40 without the onset, 25 with both."""
     scene = fold(solver="implicit", res=12)
-    solver, stage = scene.solver, scene.collision
-    state = scene.model.state()
-    stage.plan(scene.substeps)
-    short = steps = 0
-    for _ in range(60):
-        for _ in range(scene.substeps):
-            solver.step(state, scene.dt)
-            steps += 1
-            short += not solver.stats["converged"]
-        stage.frame_end()
+    short, steps, state = short_steps(scene, 60)
     assert short <= 0.3 * steps, (short, steps)
     assert np.isfinite(state.positions()).all()
 
