@@ -38,8 +38,9 @@ DEFAULT_RETRIES = 2
 #: 109 with a warning a frame)
 FROZEN_FRAMES = 3
 
-#: a frame in which a solver that solves to a tolerance (implicit Euler) left a step short of it
-#: runs again with more steps too (`retries`) when its largest edge strain ends above this and
+#: a frame (of a scene with a collision stage, whose frames can run again) in which a solver
+#: that solves to a tolerance (implicit Euler) left a step short of it runs again with more
+#: steps too (`retries`) when its largest edge strain ends above this and
 #: more than `RETRY_STRAIN_RISE` above the frame's start: a landing the solve did not converge
 #: through (measured: light, stiff curtains, 0.1 kg/m^2 and 1e5 N/m, dropped 1.5 m onto the
 #: floor at 2 steps a frame and 30 fps, Newton at its 40-iteration cap with its inner solves at
