@@ -593,7 +593,10 @@ def friction_reversal_kernel(
     vertex's tangential part replaced by ``-u``: the vertex lands at the centre of friction's
     static branch. The sliding branch has no stiffness along ``u``, so the linearised step
     sees the constant force ``mu lam`` pull on past the reference, by as much as the force
-    over the inertia block (module doc); counted in ``count[0]``."""
+    over the inertia block (module doc); counted in ``count[0]``. A vertex with entries of two
+    obstacles is landed by one of them (on the CPU the first in the record that finds it
+    reversing; on a GPU their threads race on ``dx[i]``): the direction only, which the line search then judges
+    (and `ImplicitEuler` replaces by Newton's own where it raises F at every length)."""
     t = wp.tid()
     c = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, c, num_threads):
