@@ -702,6 +702,10 @@ class _NewtonOperator(SpringSystemOperator):
 #: 97 / 138 / 206 / 202, the twist's first 150 frames 250 / 367 / 456 / 530; the table's largest
 #: one-frame energy rise 3.1e-5 / 1.4e-5 / 7.3e-6 / 3.1e-6 J. At 1e-2 a 16 x 16 fold at rest
 #: still popped by 3.1 mm (0.5 mm at 3e-3, 0.28 at 1e-3; 3.1 at 0.1): 3e-3, about twice the time
+#: Re-measured with the self-contacts' penalty onset and hold (2026-12-07; `/tmp/s27/pop.py`, the
+#: 16 x 16 fold at 120 degrees, frames 90-120, largest / median move between frames, ms a
+#: frame): 0.1: 0.60 / 0.20 mm, 31.4 ms; 1e-2: 0.10 / 0.01 mm, 16.5 ms; 3e-3: 0.11 / 0.02 mm,
+#: 15.1 ms (a loose inner solve now costs Newton iterations instead): kept.
 SELF_LINEAR_TOLERANCE = 3e-3
 
 LINEAR_DEFAULTS = {
