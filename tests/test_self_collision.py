@@ -682,8 +682,8 @@ def test_implicit_newton_converges_through_a_fold_landing_on_itself(short_steps)
     so Newton's direction drove its vertex deep in and the line search cut the step to 1/64
     (the contact energies rose by 4.8e-3 J at the full step): an entry moving toward its
     constraint, or inside it at the last assembly, now keeps the penalty's block there
-    (`HOLD_FLIPS`, self-contacts). Short steps: 91 of 120 with neither, 49 without the hold,
-    40 without the onset, 25 with both."""
+    (`HOLD_FLIPS`, self-contacts). Short steps: 89 of 120 with neither, 73 without the hold,
+    51 without the onset, 17 with both."""
     scene = fold(solver="implicit", res=12)
     short, steps, state = short_steps(scene, 60)
     assert short <= 0.3 * steps, (short, steps)
