@@ -1246,21 +1246,24 @@ class ImplicitEuler(Solver):
                 inner_short += 1
             landed = coupling is not None and self.limit_reversals
             if landed:
-                wp.copy(self._dx_newton, self.dx)
+                if self.line_search and guard_ls:  # kept for the fallback below
+                    wp.copy(self._dx_newton, self.dx)
                 coupling.limit_reversals(x, self.dx, dt, self._reversals)
             step = self._one
             switched = False
             if self.line_search:
                 strict = guard_ls
                 self._line_search(x, k, 1.0, strict)
-                if landed and strict and float(self._ls_taken.numpy()[k]) == 0.0:
+                taken = float(self._ls_taken.numpy()[k]) if strict else 1.0
+                if landed and taken == 0.0:
                     # the landings' direction raised F at every length (a landed vertex that
                     # its other forces drive on past its reference, against the springs):
                     # Newton's own direction, which descends
                     wp.copy(self.dx, self._dx_newton)
                     self._line_search(x, k, 1.0, strict)
                     self._guard["unlanded"] += 1
-                if strict and float(self._ls_taken.numpy()[k]) == 0.0:
+                    taken = float(self._ls_taken.numpy()[k])
+                if taken == 0.0:
                     # every step raised F: shorter ones, then (Jacobi / Chebyshev) CG
                     self._line_search(x, k, LS_RETRY, 1)
                     if float(self._ls_taken.numpy()[k]) == 0.0:
