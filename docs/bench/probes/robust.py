@@ -1,0 +1,90 @@
+"""Robustness sweep of cases not in `warp-cloth bench meshes`, checked per written frame in
+float64 with the bench's checkers: ``python docs/bench/probes/robust.py CASE SOLVER [FRAMES]``
+(CASE: fine highdrop rotbox sweep meshmove corner bigstep heavy pinch; env TH, FPS) prints one
+JSON row. Measured 2026-12-07 (36 runs): docs/bench/selfcollision.md."""
+import sys, os, math, time, json, tempfile, numpy as np
+from warp_cloth.util import quiet_warp
+quiet_warp()
+from warp_cloth import TriMesh, ClothModel, Scene, SimulationDiverged, make_solver
+from warp_cloth.collision import CollisionStage, Box, Plane, Sphere, MeshObstacle, Motion, KeyframePath
+from warp_cloth.contact_scenes import thin_parts_mesh
+from warp_cloth.bench.meshes import edges_of, segment_triangle_hits, jittered_grid, _fold
+from warp_cloth.usd import read_points
+
+case, solver = sys.argv[1], sys.argv[2]
+frames = int(sys.argv[3]) if len(sys.argv) > 3 else 90
+th = float(os.environ.get("TH", "0.005")); fps = float(os.environ.get("FPS", "60"))
+x0 = pins = None; substeps = None; density = 0.15; k = 1000.0
+if case == "fine":  # edges (4 mm) shorter than the thickness
+    mesh = TriMesh.grid(40, 40, size=0.16, plane="xz", origin=(-0.08, th, -0.08), name="cloth")
+    x0 = _fold(mesh.vertices, 0.0, 120.0, th); obs = [Plane()]
+elif case == "highdrop":  # falls 4 m: ~9 m/s onto the floor, folded in the air
+    mesh = jittered_grid(20, 0.8, 11, 4.0)
+    x0 = _fold(mesh.vertices, 0.1, 60.0, 4.0); obs = [Plane()]
+elif case == "rotbox":  # onto a rotated box's edge and corner
+    mesh = jittered_grid(22, 1.0, 5, 0.8)
+    s = math.sin(0.4); c = math.cos(0.4)
+    q = np.array([0.3, 0.2, 0.1]); q = q / np.linalg.norm(q) * math.sin(0.5); q = (*q, math.cos(0.5))
+    obs = [Box((0.2, 0.15, 0.25), (0.05, 0.25, 0.0), rotation=q), Plane()]
+elif case == "sweep":  # a sphere at 4 m/s along the floor through a lying sheet
+    mesh = TriMesh.grid(24, 24, size=1.0, plane="xz", origin=(-0.5, th + 0.001, -0.5), name="cloth")
+    obs = [Sphere(0.1, (-0.8, 0.1 + th, 0.0), motion=Motion(linear_velocity=(4.0, 0, 0), start=0.2)), Plane()]
+elif case == "meshmove":  # the thin-parts mesh driven up through a hanging sheet at 2 m/s
+    mesh = TriMesh.grid(24, 24, size=1.2, plane="xy", origin=(-0.6, 0.5, 0.6), name="cloth")
+    top = np.flatnonzero(np.isclose(mesh.vertices[:, 1], mesh.vertices[:, 1].max()))
+    pins = top
+    path = KeyframePath([0.0, 0.2, 1.0, 2.0], [[0, 0, 0], [0, 0, 0], [0, 0, 1.5], [0, 0, 1.5]])
+    obs = [MeshObstacle(thin_parts_mesh(), name="thin_parts", position=(0, 0.3, 0), motion=Motion(path=path)), Plane()]
+elif case == "corner":  # pinned at one corner, released sideways: flaps onto itself
+    mesh = TriMesh.grid(20, 20, size=0.8, plane="xy", origin=(-0.4, 0.4, 0.0), name="cloth")
+    v = mesh.vertices; pins = [int(np.argmax(v[:, 1] - v[:, 0]))]
+    obs = [Plane()]
+elif case == "bigstep":  # a fold at 24 fps, one solver step a frame
+    mesh = jittered_grid(16, 1.0, 2, th, keep_column=0.0)
+    x0 = _fold(mesh.vertices, 0.0, 120.0, th); obs = [Plane()]; fps = 24.0; substeps = 1
+elif case == "heavy":  # light stiff cloth (0.1 kg/m^2, 1e4 N/m) crumpled onto a sphere
+    mesh = jittered_grid(26, 1.0, 9, 0.7); density = 0.1; k = 1.0e4
+    obs = [Sphere(0.15, (0.0, 0.15, 0.0)), Plane()]
+elif case == "pinch":  # a sheet dropped into a narrow gap between two boxes (8 cm apart)
+    mesh = jittered_grid(20, 0.8, 4, 0.6)
+    obs = [Box((0.2, 0.2, 0.5), (-0.24, 0.2, 0.0)), Box((0.2, 0.2, 0.5), (0.24, 0.2, 0.0)), Plane()]
+else:
+    raise SystemExit("case?")
+model = ClothModel(mesh, density=density, stretch_stiffness=k, damping=0.1, pins=pins)
+if x0 is not None: model.initial_positions = x0
+stage = CollisionStage(model, obs, thickness=th, friction=0.4, self_collision=True)
+scene = Scene(model, make_solver(solver, model, collision=stage), fps=fps, frames=frames,
+              substeps=substeps, name=case)
+out = os.path.join(tempfile.mkdtemp(prefix="rb-"), f"{case}-{solver}.usd")
+t0 = time.perf_counter(); err = None; stats = None
+try:
+    stats = scene.run(out, quiet=True, check_intersections=True)
+except SimulationDiverged as e:
+    err = str(e)[:200]
+wall = time.perf_counter() - t0
+_, pts, _ = read_points(out)
+tris = np.asarray(mesh.triangles, np.int64); edges = edges_of(tris)
+cross = nan = through = 0; clear = math.inf; inside = 0.0; worst_f = None
+ts = np.linspace(0, 1, 9)[:, None, None]
+for f, P in enumerate(pts):
+    t = f / fps
+    if not np.all(np.isfinite(P)): nan += 1; continue
+    P = P.astype(np.float64)
+    c = segment_triangle_hits(P, edges, P, tris, True)
+    if c: cross += 1; worst_f = f
+    free = np.ones(len(P), bool)
+    if pins is not None: free[np.asarray(pins)] = False
+    S = (P[edges[:, 0]][None] * (1 - ts) + P[edges[:, 1]][None] * ts).reshape(-1, 3)
+    for ob in obs:
+        if isinstance(ob, MeshObstacle):
+            OV = ob.to_world(np.asarray(ob.vertices, np.float64), t); OT = np.asarray(ob.triangles, np.int64)
+            h = segment_triangle_hits(P, edges, OV, OT, False) + segment_triangle_hits(OV, edges_of(OT), P, tris, False)
+            through += h > 0
+        else:
+            d = ob.signed_distance(P[free], t); clear = min(clear, float(d.min()))
+            inside = max(inside, float(-ob.signed_distance(S, t).min()))
+row = dict(case=case, solver=solver, err=err, frames=len(pts), cross=cross, run_cross=None if stats is None else stats.crossing_frames,
+           nan=nan, clear_mm=round(clear * 1e3, 3), inside_mm=round(inside * 1e3, 3), through=through,
+           strain=None if stats is None else round(100 * stats.max_strain, 2), ms=None if stats is None else round(stats.ms_per_frame, 1),
+           short=None if stats is None else stats.short_frames, retried=None if stats is None else stats.retried_frames)
+print(json.dumps(row), flush=True)
