@@ -101,6 +101,116 @@ def test_cli_check_reports_crossings(tmp_path, capsys):
     assert e.value.code == 2
 
 
+def _stage(path, meshes, times=None):
+    """A USD stage with one Mesh per ``(name, faces, points, translate)``; ``points`` and
+    ``translate`` are lists over ``times`` when given (time-sampled), else single values."""
+    from pxr import Gf, Usd, UsdGeom
+
+    st = Usd.Stage.CreateNew(str(path))
+    for name, faces, points, translate in meshes:
+        xf = UsdGeom.Xform.Define(st, f"/World/{name}")
+        m = UsdGeom.Mesh.Define(st, f"/World/{name}/geom")
+        m.CreateFaceVertexCountsAttr([len(f) for f in faces])
+        m.CreateFaceVertexIndicesAttr([int(i) for f in faces for i in f])
+        op = xf.AddTranslateOp()
+        if times is None:
+            m.CreatePointsAttr([Gf.Vec3f(*map(float, p)) for p in points])
+            op.Set(Gf.Vec3d(*translate))
+        else:
+            for k, t in enumerate(times):
+                pk = points[k] if isinstance(points, list) else points
+                m.GetPointsAttr().Set([Gf.Vec3f(*map(float, p)) for p in pk], Usd.TimeCode(t))
+                tk = translate[k] if isinstance(translate, list) else translate
+                op.Set(Gf.Vec3d(*tk), Usd.TimeCode(t))
+    st.GetRootLayer().Save()
+
+
+def _check_json(args, capsys):
+    capsys.readouterr()
+    rc = cli.main(["check", *args, "--json"])
+    return rc, json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+_TRI = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]])
+_PIERCE = np.array([[0.2, 0.2, -1], [0.2, 0.2, 1], [3, 3, 0.0]])  # its edge (0, 1) through _TRI
+
+
+def test_cli_check_tests_every_mesh_in_world_space(tmp_path, capsys):
+    """Two meshes, each clean: their crossing is found between them, in world space (the
+    second's transform is animated: in its local frame it pierces the first at time 0, in
+    the world only at time 1; the pair of `test_checker_counts_exact_crossings`: 2 crossings)."""
+    f = tmp_path / "two.usda"
+    _stage(f, [("a", [[0, 1, 2]], _TRI, (0, 0, 0)),
+               ("b", [[0, 1, 2]], _PIERCE, [(5.0, 0, 0), (0, 0, 0), (0, 0, 3.0)])],
+           times=[0, 1, 2])
+    rc, rep = _check_json([str(f)], capsys)
+    assert rc == 1
+    assert rep["meshes"] == ["/World/a/geom", "/World/b/geom"]
+    assert rep["times"] == [0, 1, 2]
+    assert rep["between"] == [0, 2, 0] and rep["crossings"] == [0, 2, 0]  # as the pair below
+    assert rep["per_mesh"] == {"/World/a/geom": [0, 0, 0], "/World/b/geom": [0, 0, 0]}
+    # one mesh alone has none
+    rc, rep = _check_json([str(f), "--prim", "/World/b/geom"], capsys)
+    assert rc == 0 and rep["crossings"] == [0, 0, 0]
+    # far from the origin: the same counts
+    g = tmp_path / "far.usda"
+    far = (1.0e4, -2.0e4, 3.0e4)
+    _stage(g, [("a", [[0, 1, 2]], _TRI, far),
+               ("b", [[0, 1, 2]], _PIERCE, [tuple(c + d for c, d in zip(far, (5.0, 0, 0))), far])],
+           times=[0, 1])
+    rc, rep = _check_json([str(g)], capsys)
+    assert rc == 1 and rep["crossings"] == [0, 2]
+    # two rigid meshes (points not animated) laid into each other: reported, not failed
+    h = tmp_path / "rigid.usda"
+    _stage(h, [("a", [[0, 1, 2]], _TRI, (0, 0, 0)), ("b", [[0, 1, 2]], _PIERCE, (0, 0, 0))])
+    rc, rep = _check_json([str(h)], capsys)
+    assert rc == 0 and rep["between_rigid"] == [2] and rep["crossings"] == [0]
+
+
+def test_cli_check_takes_any_mesh_static_polygons_degenerate_and_non_manifold(tmp_path, capsys):
+    """A mesh that is no valid cloth (a quad, a zero-area triangle, an edge with three
+    triangles) and has no time samples: read once, tested as it is, and its one crossing
+    found; a non-finite point is reported, not tested."""
+    pts = np.vstack([_TRI, _PIERCE,
+                     [[10, 0, 0], [11, 0, 0], [11, 1, 0], [10, 1, 0],  # a quad
+                      [20, 0, 0], [21, 0, 0], [22, 0, 0],  # collinear
+                      [30, 0, 0], [31, 0, 0], [30, 1, 0], [30, -1, 0], [30, 0, 1]]])
+    faces = [[0, 1, 2], [3, 4, 5], [6, 7, 8, 9], [10, 11, 12],
+             [13, 14, 15], [13, 14, 16], [13, 14, 17]]  # three triangles on edge (13, 14)
+    f = tmp_path / "soup.usda"
+    _stage(f, [("soup", faces, pts, (0, 0, 0))])
+    rc, rep = _check_json([str(f)], capsys)
+    assert rc == 1 and rep["frames"] == 1 and rep["times"] == [None]
+    assert rep["crossings"] == [2]  # as `test_checker_counts_exact_crossings`
+    g = tmp_path / "nan.usda"
+    bad = pts.copy()
+    bad[12] = np.nan
+    moved = pts.copy()
+    moved[3:6, 0] += 2.0  # the piercing triangle beside the first: none
+    _stage(g, [("soup", faces, [moved, bad, moved], (0, 0, 0))], times=[0, 1, 2])
+    rc, rep = _check_json([str(g)], capsys)
+    assert rc == 1 and rep["nonfinite"] == [0, 1, 0] and rep["frames_with_crossings"] == 0
+
+
+def test_cli_check_refuses_unreadable_meshes(tmp_path, capsys):
+    from pxr import Usd, UsdGeom
+
+    empty = tmp_path / "empty.usda"
+    st = Usd.Stage.CreateNew(str(empty))
+    UsdGeom.Xform.Define(st, "/World")
+    st.GetRootLayer().Save()
+    capsys.readouterr()
+    assert cli.main(["check", str(empty)]) == 2
+    assert "has no Mesh prim" in capsys.readouterr().err
+    f = tmp_path / "outside.usda"
+    _stage(f, [("m", [[0, 1, 7]], _TRI, (0, 0, 0))])
+    assert cli.main(["check", str(f)]) == 2
+    err = capsys.readouterr().err
+    assert "/World/m/geom" in err and "= 7 is outside its 3 points" in err
+    assert cli.main(["check", str(f), "--prim", "/World/m"]) == 2
+    assert "not a Mesh" in capsys.readouterr().err
+
+
 def test_self_collision_alone_and_its_arguments():
     model = sheet_model(res=4)
     stage = CollisionStage(model, self_collision=True, self_thickness=0.004)

@@ -256,10 +256,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     _sweep_arguments(w)
 
-    c = sub.add_parser("check", help="self-intersections per frame of a USD file's mesh")
-    c.add_argument("file", help="a .usd/.usda/.usdc with a time-sampled mesh")
-    c.add_argument("--prim", default=None, help="the mesh prim path (default: the first "
-                   "time-sampled mesh)")
+    c = sub.add_parser("check", help="intersections per frame of a USD file's meshes (each "
+                       "mesh through itself and through the others)")
+    c.add_argument("file", help="a .usd/.usda/.usdc/.usdz with one or more meshes (animated "
+                   "or not)")
+    c.add_argument("--prim", action="append", default=None, metavar="PATH",
+                   help="check only this mesh prim (repeat for several; default: every mesh)")
     c.add_argument("--json", action="store_true", help="print the counts as JSON")
 
     _add_view_parsers(sub)
@@ -445,52 +447,56 @@ def cmd_info() -> int:
 
 
 def cmd_check(args, parser) -> int:
-    """Per frame, the (edge, triangle) pairs of the mesh that pass through each other (sharing
-    no vertex). Exit status 1 when any frame has one, 2 on an unreadable file."""
+    """Per frame, the (edge, triangle) pairs of the stage's meshes that pass through each other
+    (sharing no vertex), within each mesh and between meshes, in world space. Exit status 1
+    when any frame has one or a non-finite point, 2 on an unreadable file."""
     import json
-
-    import numpy as np
 
     init_warp()
     path = args.file
     if not os.path.isfile(path):
         parser.error(f"check: no such file: {path}")
     try:
-        from pxr import UsdGeom
+        from .usd import read_meshes
 
-        from .usd import read_points
-
-        times, pts, stage = read_points(path, args.prim)
-        prim = next(p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)
-                    and UsdGeom.Mesh(p).GetPointsAttr().GetNumTimeSamples() > 0) \
-            if args.prim is None else stage.GetPrimAtPath(args.prim)
-        mesh = UsdGeom.Mesh(prim)
-        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
-        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
+        times, tracks = read_meshes(path, args.prim)
     except Exception as e:  # noqa: BLE001 - any unreadable stage is a usage error here
-        print(f"warp-cloth check: cannot read a time-sampled mesh from {path}: {e}",
-              file=sys.stderr)
+        print(f"warp-cloth check: cannot read meshes from {path}: {e}", file=sys.stderr)
         return 2
-    from .collision.check import SelfIntersectionChecker
-    from .mesh import TriMesh
+    from .collision.check import check_meshes
 
-    tris, k = [], 0
-    for c in counts:  # fan-triangulate polygons
-        tris += [(idx[k], idx[k + j], idx[k + j + 1]) for j in range(1, int(c) - 1)]
-        k += int(c)
-    topo = TriMesh(pts[0].astype(np.float64), np.asarray(tris), name="checked")
-    chk = SelfIntersectionChecker(topo.triangles, topo.edges, topo.num_vertices)
-    per_frame = [chk(p) for p in pts]
+    rep = check_meshes(tracks)
+    per_frame, nonfinite = rep["crossings"], rep["nonfinite"]
     bad = [i for i, c in enumerate(per_frame) if c]
+    broken = [i for i, c in enumerate(nonfinite) if c]
     if args.json:
-        print(json.dumps({"file": path, "frames": len(per_frame), "crossings": per_frame,
-                          "frames_with_crossings": len(bad)}))
+        print(json.dumps({"file": path, "frames": len(per_frame),
+                          "times": [None if t != t else float(t) for t in times],
+                          "crossings": per_frame, "frames_with_crossings": len(bad),
+                          "meshes": [t.path for t in tracks], "per_mesh": rep["per_mesh"],
+                          "between": rep["between"], "between_rigid": rep["between_rigid"],
+                          "nonfinite": nonfinite,
+                          "frames_with_nonfinite": len(broken)}))
     else:
-        for t, c in zip(times, per_frame):
-            print(f"time {t:g}: {c} crossing (edge, triangle) pairs")
+        names = [t.path for t in tracks]
+        print(f"{path}: {len(names)} mesh{'es' if len(names) != 1 else ''} "
+              f"({', '.join(names)}), {len(per_frame)} frame{'s' if len(per_frame) != 1 else ''}")
+        for f, t in enumerate(times):
+            label = "default time" if t != t else f"time {t:g}"
+            if nonfinite[f]:
+                print(f"{label}: {nonfinite[f]} non-finite point(s), not checked")
+                continue
+            parts = [f"{n} {rep['per_mesh'][n][f]}" for n in names if rep["per_mesh"][n][f]]
+            if rep["between"][f]:
+                parts.append(f"between meshes {rep['between'][f]}")
+            detail = f" ({'; '.join(parts)})" if parts and len(names) > 1 else ""
+            rigid = rep["between_rigid"][f]
+            note = (f"; {rigid} between rigid meshes (layout, not counted)" if rigid else "")
+            print(f"{label}: {per_frame[f]} crossing (edge, triangle) pairs{detail}{note}")
         print(f"{len(bad)} of {len(per_frame)} frames with crossings; most in a frame: "
-              f"{max(per_frame) if per_frame else 0}")
-    return 1 if bad else 0
+              f"{max(per_frame) if per_frame else 0}"
+              + (f"; {len(broken)} with non-finite points" if broken else ""))
+    return 1 if bad or broken else 0
 
 
 def _read_playback(path, parser, command):

@@ -42,7 +42,7 @@ import numpy as np
 
 from .errors import OutputError
 
-__all__ = ["UsdWriter", "read_points", "OutputError", "frames_dir"]
+__all__ = ["UsdWriter", "read_points", "read_meshes", "MeshTrack", "OutputError", "frames_dir"]
 
 _FRAME_FILE = re.compile(r"^(\d{6,})\.usdc$")
 
@@ -443,3 +443,119 @@ def read_points(path, prim_path: str | None = None):
     times = attr.GetTimeSamples()
     pts = np.stack([np.asarray(attr.Get(t)) for t in times]) if times else np.zeros((0, 0, 3))
     return np.asarray(times), pts, stage
+
+
+class MeshTrack:
+    """One `UsdGeom.Mesh` of a stage as `read_meshes` returns it: ``path`` (the prim path),
+    ``triangles`` (T, 3: its faces fan-triangulated, faces of fewer than 3 corners and
+    triangles that repeat a corner left out), ``points`` (F, N, 3 float64: world positions
+    at each of the stage's times, the prim's and its ancestors' transforms applied) and
+    ``deforming`` (its points are time-sampled: a cloth; else a rigid shape, moved by
+    transforms at most)."""
+
+    def __init__(self, path: str, triangles: np.ndarray, points: np.ndarray,
+                 deforming: bool = True):
+        self.path = path
+        self.triangles = triangles
+        self.points = points
+        self.deforming = bool(deforming)
+
+    def __repr__(self):
+        return (f"MeshTrack({self.path!r}, {len(self.triangles)} triangles, "
+                f"{self.points.shape[1]} points, {self.points.shape[0]} times)")
+
+
+def _fan(counts, indices, num_points: int, where: str) -> np.ndarray:
+    counts = np.asarray(counts, dtype=np.int64).reshape(-1)
+    idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+    if np.any(counts < 0) or counts.sum() != len(idx):
+        raise ValueError(f"{where}: faceVertexCounts sum to {int(counts.sum())} but there are "
+                         f"{len(idx)} faceVertexIndices")
+    bad = np.flatnonzero((idx < 0) | (idx >= num_points))
+    if len(bad):
+        raise ValueError(f"{where}: faceVertexIndices[{int(bad[0])}] = {int(idx[bad[0]])} is "
+                         f"outside its {num_points} points")
+    tris = []
+    k = 0
+    for c in counts:
+        c = int(c)
+        for j in range(1, c - 1):
+            tris.append((idx[k], idx[k + j], idx[k + j + 1]))
+        k += c
+    t = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+    keep = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])
+    return t[keep]
+
+
+def read_meshes(path, prim_paths=None):
+    """Every `UsdGeom.Mesh` of the stage at ``path`` (or those at ``prim_paths``) in world
+    space, sampled at the stage's times: returns ``(times, [MeshTrack, ...])``.
+
+    The times are the union of the time samples of the meshes' ``points`` and of their and
+    their ancestors' transforms (value clips included); a stage with none is read once, at its
+    default time (``times`` is then ``[nan]``). Instanced meshes are read through their
+    instance proxies. Raises `ValueError` naming the prim for a stage without meshes, a path
+    that is not a mesh, a topology that changes over time, a point count that does, or face
+    indices outside the points."""
+    from pxr import Usd, UsdGeom
+
+    path = os.fspath(path)
+    stage = Usd.Stage.Open(path)
+    if stage is None:
+        raise ValueError(f"{path}: not a USD stage")
+    if prim_paths:
+        prims = []
+        for pp in prim_paths:
+            prim = stage.GetPrimAtPath(pp)
+            if not prim.IsValid():
+                raise ValueError(f"{path}: no prim at {pp}")
+            if not prim.IsA(UsdGeom.Mesh):
+                raise ValueError(f"{path}: {pp} is a {prim.GetTypeName() or 'typeless prim'}, "
+                                 "not a Mesh")
+            prims.append(prim)
+    else:
+        prims = [p for p in stage.Traverse(Usd.TraverseInstanceProxies())
+                 if p.IsA(UsdGeom.Mesh)]
+    if not prims:
+        raise ValueError(f"{path}: the stage has no Mesh prim")
+    samples = set()
+    for prim in prims:
+        samples.update(UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples())
+        p = prim
+        while p.IsValid() and not p.IsPseudoRoot():
+            if p.IsA(UsdGeom.Xformable):
+                samples.update(UsdGeom.Xformable(p).GetTimeSamples())
+            p = p.GetParent()
+    times = sorted(samples)
+    codes = [Usd.TimeCode(t) for t in times] or [Usd.TimeCode.Default()]
+    tracks = []
+    for prim in prims:
+        mesh = UsdGeom.Mesh(prim)
+        where = f"{path}: {prim.GetPath()}"
+        cattr, iattr = mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr()
+        topo_times = sorted(set(cattr.GetTimeSamples()) | set(iattr.GetTimeSamples()))
+        first = Usd.TimeCode(topo_times[0]) if topo_times else Usd.TimeCode.Default()
+        counts, indices = cattr.Get(first), iattr.Get(first)
+        for t in topo_times[1:]:
+            if (list(cattr.Get(t) or []) != list(counts or [])
+                    or list(iattr.Get(t) or []) != list(indices or [])):
+                raise ValueError(f"{where}: its faces change at time {t:g} (a fixed topology "
+                                 "is checked)")
+        pts = []
+        n = None
+        for tc in codes:
+            x = mesh.GetPointsAttr().Get(tc)
+            x = np.zeros((0, 3)) if x is None else np.asarray(x, dtype=np.float64).reshape(-1, 3)
+            if n is None:
+                n = len(x)
+            elif len(x) != n:
+                raise ValueError(f"{where}: {len(x)} points at time {tc.GetValue():g}, {n} at "
+                                 "the first (a fixed topology is checked)")
+            m = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(tc),
+                           dtype=np.float64)
+            pts.append(x @ m[:3, :3] + m[3, :3])  # USD's row vectors: p' = p M
+        tri = _fan(counts if counts is not None else [], indices if indices is not None else [],
+                   n, where)
+        tracks.append(MeshTrack(str(prim.GetPath()), tri, np.stack(pts),
+                                mesh.GetPointsAttr().GetNumTimeSamples() > 0))
+    return np.asarray(times if times else [float("nan")], dtype=np.float64), tracks

@@ -15,7 +15,8 @@ from ..util import launch
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
-__all__ = ["mesh_edge_crossings", "self_crossings", "SelfIntersectionChecker", "folded_flat_edges"]
+__all__ = ["mesh_edge_crossings", "self_crossings", "SelfIntersectionChecker", "folded_flat_edges",
+           "check_meshes"]
 
 
 #: two triangles on an edge lie folded flat onto each other when the far vertex of one is within
@@ -131,8 +132,13 @@ def segment_crosses_triangle(p: wp.vec3d, q: wp.vec3d, a: wp.vec3d, b: wp.vec3d,
 @wp.kernel
 def self_crossing_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
                          tris: wp.array2d(dtype=wp.int32), edges: wp.array2d(dtype=wp.int32),
-                         count: wp.array(dtype=int), per_edge: wp.array(dtype=int)):
-    """For edge ``e``: the triangles it passes through, none of which it shares a vertex with."""
+                         count: wp.array(dtype=int), per_edge: wp.array(dtype=int),
+                         part: wp.array(dtype=int), rigid: wp.array(dtype=int),
+                         other: wp.array(dtype=int), rigid_other: wp.array(dtype=int)):
+    """For edge ``e``: the triangles it passes through, none of which it shares a vertex with.
+    With a ``part`` per vertex (several meshes in one soup, `check_meshes`), ``other[e]`` counts
+    those of them in another part than the edge's where one of the two parts deforms, and
+    ``rigid_other[e]`` those where both are ``rigid`` (``per_edge[e]`` counts all)."""
     e = wp.tid()
     i = edges[e, 0]
     j = edges[e, 1]
@@ -141,6 +147,8 @@ def self_crossing_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
     query = wp.bvh_query_aabb(bvh, wp.min(p, q), wp.max(p, q))
     t = int(0)
     n = int(0)
+    n_other = int(0)
+    n_rigid = int(0)
     while wp.bvh_query_next(query, t):
         a = tris[t, 0]
         b = tris[t, 1]
@@ -156,7 +164,16 @@ def self_crossing_kernel(bvh: wp.uint64, x: wp.array(dtype=wp.vec3),
                                     wp.vec3d(wp.float64(xb[0]), wp.float64(xb[1]), wp.float64(xb[2])),
                                     wp.vec3d(wp.float64(xc[0]), wp.float64(xc[1]), wp.float64(xc[2]))):
             n += 1
+            if part.shape[0] > 0:
+                if part[a] != part[i]:
+                    if rigid[a] != 0 and rigid[i] != 0:
+                        n_rigid += 1
+                    else:
+                        n_other += 1
     per_edge[e] = n
+    if other.shape[0] > 0:
+        other[e] = n_other
+        rigid_other[e] = n_rigid
     if n > 0:
         wp.atomic_add(count, 0, n)
 
@@ -224,6 +241,10 @@ class SelfIntersectionChecker:
         self.uppers = wp.zeros(nt, dtype=wp.vec3, device=device)
         self.count = wp.zeros(1, dtype=int, device=device)
         self.per_edge = wp.zeros(self.edges.shape[0], dtype=int, device=device)
+        self.part = wp.zeros(0, dtype=int, device=device)
+        self.rigid = wp.zeros(0, dtype=int, device=device)
+        self.other = wp.zeros(0, dtype=int, device=device)
+        self.rigid_other = wp.zeros(0, dtype=int, device=device)
         self.bvh = None
 
     def __call__(self, positions) -> int:
@@ -241,8 +262,8 @@ class SelfIntersectionChecker:
             self.bvh.refit()
         self.count.zero_()
         launch(self_crossing_kernel, self.edges.shape[0],
-               [self.bvh.id, self.x, self.tris, self.edges, self.count, self.per_edge],
-               device=self.device)
+               [self.bvh.id, self.x, self.tris, self.edges, self.count, self.per_edge,
+                self.part, self.rigid, self.other, self.rigid_other], device=self.device)
         return int(self.count.numpy()[0])
 
 
@@ -250,3 +271,80 @@ def self_crossings(positions, triangles, edges, device="cpu") -> int:
     """(edge, triangle) pairs sharing no vertex whose edge passes through the triangle."""
     positions = np.asarray(positions)
     return SelfIntersectionChecker(triangles, edges, len(positions), device)(positions)
+
+
+def _edges_of(triangles) -> np.ndarray:
+    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
+def check_meshes(tracks, device="cpu") -> dict:
+    """Crossings of the meshes ``tracks`` (`warp_cloth.usd.MeshTrack`: triangles, world points
+    per time and whether the points are animated), per time: (edge, triangle) pairs that share
+    no vertex and whose edge passes through the triangle, within each mesh and between meshes
+    (one soup: no vertex is shared across meshes, so every pair across two meshes is tested).
+
+    Needs no valid cloth topology: any triangles (non-manifold, degenerate, duplicated) are
+    tested as they are (a degenerate triangle is crossed by nothing). A time at which some
+    point is not finite is not tested and is reported in ``nonfinite`` (its count of such
+    points). Returns ``{"crossings": [...], "per_mesh": {path: [...]}, "between": [...],
+    "between_rigid": [...], "nonfinite": [...]}`` (lists over the times): a mesh's count holds
+    its edges through its own triangles; ``between`` the crossings of two meshes of which one
+    deforms (its points animated: a cloth against anything), ``between_rigid`` those of two
+    rigid meshes (points fixed, moved by transforms only: obstacles laid into each other or
+    into the ground, a scene's layout rather than a simulation's output). ``crossings`` is the
+    sum of all but ``between_rigid``."""
+    tracks = list(tracks)
+    offs = np.cumsum([0] + [t.points.shape[1] for t in tracks])
+    tris = np.concatenate([t.triangles + o for t, o in zip(tracks, offs[:-1])]) \
+        if tracks else np.zeros((0, 3), np.int64)
+    frames = tracks[0].points.shape[0] if tracks else 0
+    names = [t.path for t in tracks]
+    keys = ("crossings", "between", "between_rigid", "nonfinite")
+    out = {k: [] for k in keys}
+    out["per_mesh"] = {n: [] for n in names}
+
+    def none_tested(bad):
+        for k in keys[:3]:
+            out[k].append(0)
+        out["nonfinite"].append(bad)
+        for n in names:
+            out["per_mesh"][n].append(0)
+
+    if len(tris) == 0:
+        for _ in range(frames):
+            none_tested(0)
+        return out
+    edges = _edges_of(tris)
+    part_v = np.repeat(np.arange(len(tracks)), np.diff(offs))
+    rigid_v = np.repeat([0 if t.deforming else 1 for t in tracks], np.diff(offs))
+    chk = SelfIntersectionChecker(tris, edges, int(offs[-1]), device)
+    chk.part = wp.array(part_v.astype(np.int32), dtype=int, device=device)
+    chk.rigid = wp.array(rigid_v.astype(np.int32), dtype=int, device=device)
+    chk.other = wp.zeros(len(edges), dtype=int, device=device)
+    chk.rigid_other = wp.zeros(len(edges), dtype=int, device=device)
+    edge_part = part_v[edges[:, 0]]
+    # the test is translation-invariant: float32 coordinates about the meshes' centre keep a
+    # stage far from the origin as precise as one at it
+    first = np.concatenate([t.points[0] for t in tracks]) if frames else np.zeros((0, 3))
+    ok = first[np.isfinite(first).all(axis=1)]
+    centre = 0.5 * (ok.min(axis=0) + ok.max(axis=0)) if len(ok) else np.zeros(3)
+    for f in range(frames):
+        x = np.concatenate([t.points[f] for t in tracks]) - centre
+        bad = int((~np.isfinite(x).all(axis=1)).sum())
+        if bad:
+            none_tested(bad)
+            continue
+        total = chk(x)
+        per_edge = chk.per_edge.numpy()
+        other = chk.other.numpy()
+        rigid = chk.rigid_other.numpy()
+        same = np.bincount(edge_part, weights=per_edge - other - rigid, minlength=len(tracks))
+        out["crossings"].append(total - int(rigid.sum()))
+        out["between"].append(int(other.sum()))
+        out["between_rigid"].append(int(rigid.sum()))
+        out["nonfinite"].append(0)
+        for k, n in enumerate(names):
+            out["per_mesh"][n].append(int(same[k]))
+    return out
