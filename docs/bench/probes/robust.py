@@ -1,6 +1,7 @@
 """Robustness sweep of cases not in `warp-cloth bench meshes`, checked per written frame in
 float64 with the bench's checkers: ``python docs/bench/probes/robust.py CASE SOLVER [FRAMES]``
-(CASE: fine highdrop rotbox sweep meshmove corner bigstep heavy pinch; env TH, FPS) prints one
+(CASE: fine highdrop rotbox sweep meshmove corner bigstep heavy pinch headon tube throw
+spinwrap fasttwist; env TH, FPS) prints one
 JSON row. Measured 2026-12-07 (36 runs): docs/bench/selfcollision.md."""
 import sys, os, math, time, json, tempfile, numpy as np
 from warp_cloth.util import quiet_warp
@@ -48,13 +49,46 @@ elif case == "heavy":  # light stiff cloth (0.1 kg/m^2, 1e4 N/m) crumpled onto a
 elif case == "pinch":  # a sheet dropped into a narrow gap between two boxes (8 cm apart)
     mesh = jittered_grid(20, 0.8, 4, 0.6)
     obs = [Box((0.2, 0.2, 0.5), (-0.24, 0.2, 0.0)), Box((0.2, 0.2, 0.5), (0.24, 0.2, 0.0)), Plane()]
+elif case == "headon":  # two sheets meeting in the air at 12 m/s, then on the floor
+    a = TriMesh.grid(16, 16, size=0.6, plane="xz", origin=(-0.3, 0.9, -0.3))
+    b = TriMesh.grid(16, 16, size=0.6, plane="xz", origin=(-0.2, 1.2, -0.35))
+    n = len(a.vertices)
+    mesh = TriMesh(np.vstack([a.vertices, b.vertices]),
+                   np.vstack([a.triangles, np.asarray(b.triangles) + n]), name="cloth")
+    vel = np.zeros((2 * n, 3)); vel[:n, 1] = 6.0; vel[n:, 1] = -6.0
+    obs = [Plane()]
+elif case == "tube":  # a closed tube lying across the floor, collapsing flat onto itself
+    nu, nv, r, L = 24, 12, 0.12, 0.8
+    u = np.arange(nu) * 2 * math.pi / nu; s = np.linspace(-L / 2, L / 2, nv + 1)
+    V = np.array([[x, 0.3 + r * math.cos(t), r * math.sin(t)] for x in s for t in u])
+    T = []
+    for j in range(nv):
+        for i in range(nu):
+            a0 = j * nu + i; a1 = j * nu + (i + 1) % nu; b0 = a0 + nu; b1 = a1 + nu
+            T += [[a0, a1, b1], [a0, b1, b0]]
+    mesh = TriMesh(V, np.array(T), name="cloth"); obs = [Plane()]
+elif case == "throw":  # a ball thrown at 8 m/s into a sheet hanging from its top row
+    mesh = TriMesh.grid(24, 24, size=1.0, plane="xy", origin=(-0.5, 0.3, 0.0), name="cloth")
+    pins = np.flatnonzero(np.isclose(mesh.vertices[:, 1], mesh.vertices[:, 1].max()))
+    obs = [Sphere(0.12, (0.0, 0.8, -0.5), motion=Motion(linear_velocity=(0, 0, 8.0), start=0.1))]
+elif case == "spinwrap":  # dropped on a sphere turning at 12 rad/s about the vertical
+    mesh = TriMesh.grid(24, 24, size=1.0, plane="xz", origin=(-0.5, 0.5, -0.5), name="cloth")
+    obs = [Sphere(0.2, (0.0, 0.2, 0.0), motion=Motion(angular_velocity=(0, 12.0, 0))), Plane()]
+elif case == "fasttwist":  # the twist at 2 pi rad/s, 25 x 25 vertices
+    from warp_cloth.contact_scenes import twist
+    tw = twist(solver=solver, res=24, rate=2 * math.pi, frames=frames)
+    mesh = tw.model.mesh; obs = []; pins = tw.model.pins
+    scene = tw
 else:
     raise SystemExit("case?")
-model = ClothModel(mesh, density=density, stretch_stiffness=k, damping=0.1, pins=pins)
-if x0 is not None: model.initial_positions = x0
-stage = CollisionStage(model, obs, thickness=th, friction=0.4, self_collision=True)
-scene = Scene(model, make_solver(solver, model, collision=stage), fps=fps, frames=frames,
-              substeps=substeps, name=case)
+if case != "fasttwist":
+    model = ClothModel(mesh, density=density, stretch_stiffness=k, damping=0.1, pins=pins,
+                       velocity=vel if case == "headon" else None)
+if case != "fasttwist":
+    if x0 is not None: model.initial_positions = x0
+    stage = CollisionStage(model, obs, thickness=th, friction=0.4, self_collision=True)
+    scene = Scene(model, make_solver(solver, model, collision=stage), fps=fps, frames=frames,
+                  substeps=substeps, name=case)
 out = os.path.join(tempfile.mkdtemp(prefix="rb-"), f"{case}-{solver}.usd")
 t0 = time.perf_counter(); err = None; stats = None
 try:
