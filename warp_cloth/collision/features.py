@@ -547,12 +547,38 @@ def pin_held(vid: wp.vec4i, w: wp.vec4, inv_mass: wp.array(dtype=float)):
     return free < PIN_SHARE * total
 
 
+@wp.func
+def side_normal_velocities(vid: wp.vec4i, w: wp.vec4, n: wp.vec3, vel: wp.array(dtype=wp.vec3)):
+    """An entry's two sides' normal velocities: the mean of ``v . n`` over its vertices of
+    positive weight and over those of negative weight, weighted ``|w_k|`` (a vertex and the
+    point of the triangle under it, the points of two edges); 0 for a side with none."""
+    sp = float(0.0)
+    ap = float(0.0)
+    sm = float(0.0)
+    am = float(0.0)
+    for k in range(4):
+        i = vid[k]
+        if i >= 0:
+            if w[k] > 0.0:
+                sp += w[k] * wp.dot(vel[i], n)
+                ap += w[k]
+            elif w[k] < 0.0:
+                sm -= w[k] * wp.dot(vel[i], n)
+                am -= w[k]
+    if ap > 0.0:
+        sp = sp / ap
+    if am > 0.0:
+        sm = sm / am
+    return sp, sm
+
+
 @wp.kernel
 def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.vec3),
                           inv_mass: wp.array(dtype=float), acc: wp.array(dtype=wp.vec3),
                           cnt: wp.array(dtype=int), violated: wp.array(dtype=int),
                           tol: float, num_threads: int, moved: wp.array(dtype=wp.vec3),
-                          x_start: wp.array(dtype=wp.vec3)):
+                          x_start: wp.array(dtype=wp.vec3), vel: wp.array(dtype=wp.vec3),
+                          frame: wp.array(dtype=float)):
     """One Jacobi round: each violated entry's correction, shared by mass and weight (the
     number of entries violated by more than ``tol`` is added to ``violated[0]``; an entry
     `pin_held` is left alone and, if ``violated`` has a second slot, sets ``violated[1]``). With a
@@ -561,7 +587,11 @@ def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.v
     ``x_start`` array (inside a position-based solver's iterations), an entry that started
     inside (``g(x_start) < 0``) is held where it started, not pushed out: the solver's velocity
     update would make that push a separation speed (a sheet starting on a box's face left at
-    5.6 m/s); the response after the step, whose velocity rule is inelastic, takes it out."""
+    5.6 m/s); the response after the step, whose velocity rule is inelastic, takes it out.
+    With velocities ``vel`` (self-contacts: the cloth's own layers), ``frame`` keeps for each
+    corrected vertex the largest velocity of its entries' other sides (`side_normal_velocities`)
+    along its correction from that entry, the frame of `self_collision.layer_apply`'s
+    velocity rule."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(first + t, count, num_threads):
@@ -584,6 +614,11 @@ def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.v
             shift = wp.vec3(0.0)
             if moved.shape[0] > 0:
                 shift = (rec.offset[e] - wp.dot(n, rec.ref[e])) * n
+            layers = vel.shape[0] > 0
+            vp = float(0.0)
+            vm = float(0.0)
+            if layers:
+                vp, vm = side_normal_velocities(vid, w, n, vel)
             for j in range(4):
                 v = vid[j]
                 if v >= 0 and inv_mass[v] > 0.0:
@@ -591,6 +626,12 @@ def jacobi_project_kernel(rec: ContactRecord, first: int, x: wp.array(dtype=wp.v
                     wp.atomic_add(cnt, v, 1)
                     if moved.shape[0] > 0:
                         wp.atomic_add(moved, v, shift)
+                    # the other side's velocity along this entry's push on the vertex
+                    # (``lam > 0``: along ``n`` for a positive weight, against it else)
+                    if layers and w[j] > 0.0:
+                        wp.atomic_max(frame, v, vm)
+                    elif layers and w[j] < 0.0:
+                        wp.atomic_max(frame, v, -vp)
 
 
 @wp.func
@@ -619,13 +660,6 @@ def inelastic_apply_rel(i: int, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp
         v[i] = inelastic_velocity(v[i], d, ws)
         acc[i] = wp.vec3(0.0)
         cnt[i] = 0
-
-
-@wp.func
-def inelastic_apply(i: int, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-                    acc: wp.array(dtype=wp.vec3), cnt: wp.array(dtype=int)):
-    """`inelastic_apply_kernel` for vertex ``i`` (a surface at rest: the cloth's own layers)."""
-    inelastic_apply_rel(i, x, v, acc, cnt, wp.vec3(0.0))
 
 
 @wp.kernel
@@ -969,6 +1003,7 @@ class FeatureContact:
         self.moved = wp.zeros(n if getattr(contact, "moving", False) else 0, dtype=wp.vec3,
                               device=d)
         self._no_moved = wp.zeros(0, dtype=wp.vec3, device=d)  # also: no x_start
+        self._no_float = wp.zeros(0, dtype=float, device=d)
         # the in-iteration projection's count of violated entries (one slot: pinned entries
         # are not flagged there), not read
         self._scratch = wp.zeros(1, dtype=int, device=d)
@@ -1068,7 +1103,8 @@ class FeatureContact:
         d, m = self.device, self.model
         launch(jacobi_project_kernel, self.threads,
                [record, first, x, m.inv_mass, self.acc, self.cnt, self._scratch,
-                RESOLVE_TOL * self.thickness, self.threads, self._no_moved, x_start], device=d)
+                RESOLVE_TOL * self.thickness, self.threads, self._no_moved, x_start,
+                self._no_moved, self._no_float], device=d)
         press = self.pressed if self.has_friction and dt > 0.0 else self._no_moved
         launch(position_apply_kernel, m.num_vertices,
                [x, self.acc, self.cnt, press, 1.0 / dt if dt > 0.0 else 0.0], device=d)
@@ -1105,8 +1141,8 @@ class FeatureContact:
         d, m = self.device, self.model
         launch(jacobi_project_kernel, self.threads,
                [record, first, state.x, m.inv_mass, self.acc, self.cnt, self.violated,
-                RESOLVE_TOL * self.thickness, self.threads, self.moved, self._no_moved],
-               device=d)
+                RESOLVE_TOL * self.thickness, self.threads, self.moved, self._no_moved,
+                self._no_moved, self._no_float], device=d)
         launch(inelastic_apply_kernel, m.num_vertices,
                [state.x, state.v, self.acc, self.cnt, self.moved, 1.0 / dt], device=d)
         launch(round_done_kernel, 1,

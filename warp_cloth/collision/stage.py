@@ -254,6 +254,7 @@ class CollisionStage:
         self._stretched = wp.zeros(1, dtype=int, device=self.device)
         self._stretched_seen = 0
         self._no_vec = wp.zeros(0, dtype=wp.vec3, device=self.device)
+        self._no_float = wp.zeros(0, dtype=float, device=self.device)
         self._dropped_seen = [0, 0]
         self._regrow_listeners = []
         self._restart_listeners = []
@@ -446,7 +447,8 @@ class CollisionStage:
         m, d = self.model, self.device
         launch(jacobi_project_kernel, threads,
                [rec, 0, x, m.inv_mass, acc, cnt, self._self_scratch,
-                RESOLVE_TOL * self.self_collision.thickness, threads, self._no_vec, x_start],
+                RESOLVE_TOL * self.self_collision.thickness, threads, self._no_vec, x_start,
+                self._no_vec, self._no_float],
                device=d)
         launch(position_apply_kernel, m.num_vertices, [x, acc, cnt, self._no_vec, 0.0], device=d)
 

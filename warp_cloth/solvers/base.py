@@ -168,8 +168,15 @@ class Solver:
         self.collision = _as_stage(self.model, collision)
         self.capturable = self.capturable and self.collision.capturable
         self._need_start()
-        if self.corrections and getattr(self.collision, "self_collision", None) is not None:
+        sc = getattr(self.collision, "self_collision", None)
+        if sc is not None:
+            sc.layer_frames = self.self_contact_layer_frames
+        if self.corrections and sc is not None:
             self._self_again_alloc()
+
+    #: the self-contacts' velocity rule in the frames of the layers that meet
+    #: (`SelfCollision.layer_frames`), else against a world at rest
+    self_contact_layer_frames = True
 
     #: True for a method whose steps record the same launches from one step to the next
     #: (`uniform_steps`)
