@@ -42,7 +42,8 @@ import numpy as np
 
 from .errors import OutputError
 
-__all__ = ["UsdWriter", "read_points", "read_meshes", "MeshTrack", "OutputError", "frames_dir"]
+__all__ = ["UsdWriter", "read_points", "read_meshes", "MeshTrack", "fan_triangulate",
+           "OutputError", "frames_dir"]
 
 _FRAME_FILE = re.compile(r"^(\d{6,})\.usdc$")
 
@@ -465,26 +466,25 @@ class MeshTrack:
                 f"{self.points.shape[1]} points, {self.points.shape[0]} times)")
 
 
-def _fan(counts, indices, num_points: int, where: str) -> np.ndarray:
+def fan_triangulate(counts, indices, where: str) -> np.ndarray:
+    """A USD mesh's faces (``faceVertexCounts``, ``faceVertexIndices``) as triangles (T, 3
+    int64): polygons fanned from their first corner ``(v0, vk, vk+1)``, faces of fewer than 3
+    corners dropped. Raises `ValueError` naming ``where`` when the counts do not add up to the
+    indices. Shared by `read_meshes` and the viewer (`viewer.playback`)."""
     counts = np.asarray(counts, dtype=np.int64).reshape(-1)
-    idx = np.asarray(indices, dtype=np.int64).reshape(-1)
-    if np.any(counts < 0) or counts.sum() != len(idx):
+    indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+    if np.any(counts < 0) or counts.sum() != len(indices):
         raise ValueError(f"{where}: faceVertexCounts sum to {int(counts.sum())} but there are "
-                         f"{len(idx)} faceVertexIndices")
-    bad = np.flatnonzero((idx < 0) | (idx >= num_points))
-    if len(bad):
-        raise ValueError(f"{where}: faceVertexIndices[{int(bad[0])}] = {int(idx[bad[0]])} is "
-                         f"outside its {num_points} points")
-    tris = []
-    k = 0
-    for c in counts:
-        c = int(c)
-        for j in range(1, c - 1):
-            tris.append((idx[k], idx[k + j], idx[k + j + 1]))
-        k += c
-    t = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
-    keep = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])
-    return t[keep]
+                         f"{len(indices)} faceVertexIndices")
+    if len(counts) and np.all(counts == 3):
+        return indices.reshape(-1, 3)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    parts = []
+    for k in range(1, int(counts.max(initial=0)) - 1):
+        sel = counts >= k + 2
+        s0 = starts[sel]
+        parts.append(np.stack([indices[s0], indices[s0 + k], indices[s0 + k + 1]], axis=1))
+    return np.concatenate(parts) if parts else np.zeros((0, 3), np.int64)
 
 
 def read_meshes(path, prim_paths=None):
@@ -554,8 +554,14 @@ def read_meshes(path, prim_paths=None):
             m = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(tc),
                            dtype=np.float64)
             pts.append(x @ m[:3, :3] + m[3, :3])  # USD's row vectors: p' = p M
-        tri = _fan(counts if counts is not None else [], indices if indices is not None else [],
-                   n, where)
+        idx = np.asarray(indices if indices is not None else [], dtype=np.int64).reshape(-1)
+        bad = np.flatnonzero((idx < 0) | (idx >= n))
+        if len(bad):
+            raise ValueError(f"{where}: faceVertexIndices[{int(bad[0])}] = {int(idx[bad[0]])} "
+                             f"is outside its {n} points")
+        tri = fan_triangulate(counts if counts is not None else [], idx, where)
+        # a triangle that repeats a corner (a degenerate polygon's fan) is crossed by nothing
+        tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])]
         tracks.append(MeshTrack(str(prim.GetPath()), tri, np.stack(pts),
                                 mesh.GetPointsAttr().GetNumTimeSamples() > 0))
     return np.asarray(times if times else [float("nan")], dtype=np.float64), tracks

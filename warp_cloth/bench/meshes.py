@@ -40,6 +40,7 @@ import time
 
 import numpy as np
 
+from ..collision.check import edges_of  # noqa: F401 - also the probes' (docs/bench/probes)
 from ..util import quiet_warp
 
 SOLVERS = ("explicit", "implicit", "pbd", "pd")
@@ -160,12 +161,6 @@ def _vertical_start(mesh):
     y = x[:, 1] - THICKNESS
     x[:, 1], x[:, 2] = THICKNESS + y * math.cos(a), x[:, 2] + y * math.sin(a)
     return x
-
-
-def edges_of(tris) -> np.ndarray:
-    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-    e.sort(axis=1)
-    return np.unique(e, axis=0)
 
 
 def segment_triangle_hits(P, edges, Q, tris, skip_shared: bool) -> int:

@@ -16,7 +16,7 @@ from ..util import launch
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = ["mesh_edge_crossings", "self_crossings", "SelfIntersectionChecker", "folded_flat_edges",
-           "check_meshes"]
+           "check_meshes", "edges_of"]
 
 
 #: two triangles on an edge lie folded flat onto each other when the far vertex of one is within
@@ -229,7 +229,11 @@ class SelfIntersectionChecker:
     float64 segment-triangle test decides. For tests, `RunStats` (``check_intersections``) and
     ``warp-cloth check``."""
 
-    def __init__(self, triangles, edges, num_vertices: int, device="cpu"):
+    def __init__(self, triangles, edges, num_vertices: int, device="cpu", parts=None,
+                 rigid=None):
+        """``parts`` (optional, an int per vertex: several meshes in one soup) also counts per
+        edge the crossings through another part's triangles (``other``), apart where both
+        parts are ``rigid`` (an int per vertex, 1: rigid; ``rigid_other``)."""
         self.device = device
         self.tris = wp.array(np.asarray(triangles, dtype=np.int32), dtype=wp.int32, ndim=2,
                              device=device)
@@ -241,10 +245,13 @@ class SelfIntersectionChecker:
         self.uppers = wp.zeros(nt, dtype=wp.vec3, device=device)
         self.count = wp.zeros(1, dtype=int, device=device)
         self.per_edge = wp.zeros(self.edges.shape[0], dtype=int, device=device)
-        self.part = wp.zeros(0, dtype=int, device=device)
-        self.rigid = wp.zeros(0, dtype=int, device=device)
-        self.other = wp.zeros(0, dtype=int, device=device)
-        self.rigid_other = wp.zeros(0, dtype=int, device=device)
+        ne = self.edges.shape[0] if parts is not None else 0
+        self.part = wp.array(np.zeros(0, np.int32) if parts is None else
+                             np.asarray(parts, np.int32), dtype=int, device=device)
+        self.rigid = wp.array(np.zeros(len(self.part), np.int32) if rigid is None else
+                              np.asarray(rigid, np.int32), dtype=int, device=device)
+        self.other = wp.zeros(ne, dtype=int, device=device)
+        self.rigid_other = wp.zeros(ne, dtype=int, device=device)
         self.bvh = None
 
     def __call__(self, positions) -> int:
@@ -273,7 +280,9 @@ def self_crossings(positions, triangles, edges, device="cpu") -> int:
     return SelfIntersectionChecker(triangles, edges, len(positions), device)(positions)
 
 
-def _edges_of(triangles) -> np.ndarray:
+def edges_of(triangles) -> np.ndarray:
+    """The unique edges (E, 2; sorted pairs) of triangles (T, 3), host numpy: any triangles,
+    no topology checks (`TriMesh` builds a valid cloth's own)."""
     t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
     return np.unique(np.sort(e, axis=1), axis=0)
@@ -316,14 +325,11 @@ def check_meshes(tracks, device="cpu") -> dict:
         for _ in range(frames):
             none_tested(0)
         return out
-    edges = _edges_of(tris)
+    edges = edges_of(tris)
     part_v = np.repeat(np.arange(len(tracks)), np.diff(offs))
     rigid_v = np.repeat([0 if t.deforming else 1 for t in tracks], np.diff(offs))
-    chk = SelfIntersectionChecker(tris, edges, int(offs[-1]), device)
-    chk.part = wp.array(part_v.astype(np.int32), dtype=int, device=device)
-    chk.rigid = wp.array(rigid_v.astype(np.int32), dtype=int, device=device)
-    chk.other = wp.zeros(len(edges), dtype=int, device=device)
-    chk.rigid_other = wp.zeros(len(edges), dtype=int, device=device)
+    chk = SelfIntersectionChecker(tris, edges, int(offs[-1]), device, parts=part_v,
+                                  rigid=rigid_v)
     edge_part = part_v[edges[:, 0]]
     # the test is translation-invariant: float32 coordinates about the meshes' centre keep a
     # stage far from the origin as precise as one at it

@@ -664,7 +664,8 @@ def revert_all_kernel(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
 
 
 #: the self-contacts' velocity rule's frame before any entry is projected (`layer_apply`)
-NO_FRAME = wp.constant(-1.0e30)
+_NO_FRAME = -1.0e30
+NO_FRAME = wp.constant(_NO_FRAME)
 
 
 @wp.func
@@ -1418,7 +1419,7 @@ class SelfCollision:
         self._no_moved = wp.zeros(0, dtype=wp.vec3, device=d)  # its layers do not move apart
         self.cnt = wp.zeros(n, dtype=int, device=d)
         # per vertex, the largest velocity of its projected entries' other sides (`layer_apply`)
-        self._frame = wp.full(n, -1.0e30, dtype=float, device=d)
+        self._frame = wp.full(n, _NO_FRAME, dtype=float, device=d)
         self.threads = record_threads(self.capacity, self.device)
         # per step: STAT_KEYS
         self.counters = wp.zeros(len(STAT_KEYS), dtype=int, device=d)

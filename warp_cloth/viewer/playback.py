@@ -132,21 +132,9 @@ class Playback:
 
 
 def _triangulate(counts, indices, path, left_handed=False):
-    counts = np.asarray(counts, dtype=np.int64)
-    indices = np.asarray(indices, dtype=np.int64)
-    if counts.sum() != len(indices):
-        raise ValueError(f"{path}: faceVertexCounts sum to {counts.sum()} but there are "
-                         f"{len(indices)} faceVertexIndices")
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    if np.all(counts == 3):
-        tris = indices.reshape(-1, 3)
-    else:
-        parts = []
-        for k in range(1, int(counts.max(initial=0)) - 1):   # fan: (v0, vk, vk+1)
-            sel = counts >= k + 2
-            s = starts[sel]
-            parts.append(np.stack([indices[s], indices[s + k], indices[s + k + 1]], axis=1))
-        tris = np.concatenate(parts) if parts else np.zeros((0, 3), np.int64)
+    from ..usd import fan_triangulate
+
+    tris = fan_triangulate(counts, indices, path)
     if left_handed:
         tris = tris[:, ::-1]
     return np.ascontiguousarray(tris, dtype=np.int32)
