@@ -11,8 +11,8 @@ import warp as wp
 
 import warp_cloth
 from warp_cloth import Scene, make_solver
-from warp_cloth.collision import (PENETRATION_TOLERANCE, CollisionStage, ObstacleContact, Plane,
-                                  Sphere)
+from warp_cloth.collision import (PENETRATION_TOLERANCE, CollisionStage, Motion, ObstacleContact,
+                                  Plane, Sphere)
 from warp_cloth.collision.record import (KIND_EDGE_EDGE, KIND_VERTEX_OBSTACLE,
                                         KIND_VERTEX_TRIANGLE, make_record)
 from warp_cloth.contact_scenes import sheet_model
@@ -612,6 +612,59 @@ def _box(hx, hy, hz):
     for a, b, c, d in quads:
         t += [(a, b, c), (a, c, d)]
     return TriMesh(v, np.array(t), name="box")
+
+
+def test_sphere_contact_pad_is_the_dip_of_a_stretched_edge():
+    """`sphere_contact_pad`: 0 for a sphere flat enough for the cloth's edges, the sagitta of
+    an edge 5 % longer than the longest rest edge less the thickness for one curved enough that
+    such an edge between held vertices would enter it, 0 again past half the thickness of dip
+    at rest (the triangle entries of `FeatureContact` take over there)."""
+    from warp_cloth.collision.obstacles import (SPHERE_EDGE_STRETCH, sphere_contact_pad,
+                                                sphere_needs_features)
+
+    h, L = 0.005, 0.1
+    assert sphere_contact_pad(Sphere(1.0), L, h) == 0.0  # L^2 / 8R = 1.25 mm
+    ball = Sphere(0.22)  # at rest 5.68 mm: 0.68 mm into it
+    pad = sphere_contact_pad(ball, L, h)
+    assert pad == pytest.approx((SPHERE_EDGE_STRETCH * L) ** 2 / (8 * 0.22) - h, rel=1e-12)
+    assert not sphere_needs_features(ball, L, h)
+    small = Sphere(0.15)  # at rest 8.3 mm: past half the thickness
+    assert sphere_needs_features(small, L, h) and sphere_contact_pad(small, L, h) == 0.0
+
+
+@pytest.mark.parametrize("solver_name,spin", [("explicit", 0.0), ("implicit", 0.0),
+                                               ("pbd", 0.0), ("pd", 0.0), ("explicit", 1.0),
+                                               ("pd", 1.0)])
+def test_cloth_edges_stay_outside_a_curved_sphere(solver_name, spin):
+    """A 10 x 10 sheet (8 cm cells) settling on a 0.25 m sphere: its rest diagonals between
+    vertices held the thickness out would dip 1.4 mm into the sphere (measured without the pad:
+    1.3-1.5 mm inside, explicit and PD); with the vertex contact's radius padded
+    (`sphere_contact_pad`, 2.06 mm) no point along any edge is inside the sphere in any frame.
+    A static sphere and one turning about the vertical (the moving obstacles' kernels)."""
+    from warp_cloth.mesh import TriMesh
+    from warp_cloth.model import ClothModel
+    from warp_cloth.scene import suggest_substeps
+
+    mesh = TriMesh.grid(10, 10, size=0.8, plane="xz", origin=(-0.4, 0.3, -0.4), name="cloth")
+    model = ClothModel(mesh, density=0.2, stretch_stiffness=1000.0, damping=0.5)
+    ball = Sphere(0.25, (0.0, 0.0, 0.0), motion=Motion(angular_velocity=(0.0, spin, 0.0)))
+    stage = CollisionStage(model, [ball], thickness=0.005, friction=0.5, self_collision=False)
+    assert stage.contact.pads[0] == pytest.approx(0.00206, abs=1e-5)
+    solver = make_solver(solver_name, model, collision=stage)
+    st = model.state()
+    sub = suggest_substeps(solver, 1 / 60)
+    edges = np.asarray(mesh.edges)
+    s = np.linspace(0.0, 1.0, 11)[:, None, None]
+    worst = np.inf
+    for _ in range(60):
+        for _ in range(sub):
+            solver.step(st, 1 / 60 / sub)
+        p = st.positions()
+        pts = (p[edges[:, 0]][None] * (1 - s) + p[edges[:, 1]][None] * s).reshape(-1, 3)
+        worst = min(worst, float(ball.signed_distance(pts, st.t).min()))
+    assert worst > 0.0, f"an edge point {-worst * 1e3:.3f} mm inside the sphere"
+    # the cloth rests on it: vertices at the padded radius plus the thickness
+    assert float(ball.signed_distance(p, st.t).min()) == pytest.approx(0.00706, abs=2e-4)
 
 
 def test_sharp_features_are_the_edges_a_cloth_edge_can_cut():

@@ -96,7 +96,7 @@ import warp as wp
 
 from ..util import launch
 from .motion import KIND_MESH, quat_rotate
-from .obstacles import Obstacle
+from .obstacles import Obstacle, Sphere, sphere_contact_pad
 
 __all__ = ["ObstacleContact", "PENETRATION_TOLERANCE", "DEFAULT_THICKNESS", "DEFAULT_FRICTION",
            "DEFAULT_RESTITUTION", "NEAR_BATCH"]
@@ -209,8 +209,17 @@ class ObstacleContact:
         from .motion import ObstacleData
 
         ordered = self.analytic + self.meshes  # pose k of `poses` belongs to ordered[k]
+        # spheres whose curvature a cloth edge between held vertices would cut into: their
+        # radius padded for the vertex contact (`sphere_contact_pad`)
+        v = np.asarray(model.mesh.vertices, dtype=np.float64)
+        e = np.asarray(model.mesh.edges).reshape(-1, 2)
+        rest_max = float(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1).max()) if len(e) else 0.0
+        #: m added to each obstacle's radius for the vertex contact (`ordered` order; spheres)
+        self.pads = [sphere_contact_pad(ob, rest_max, self.thickness)
+                     if isinstance(ob, Sphere) else 0.0 for ob in ordered]
         self._data = wp.array(
-            [ob.device_data(start_of[id(ob)], self.friction, self.restitution) for ob in ordered],
+            [ob.device_data(start_of[id(ob)], self.friction, self.restitution, pad)
+             for ob, pad in zip(ordered, self.pads)],
             dtype=ObstacleData, device=d)
         self.moving = any(ob.moving for ob in ordered)
         poses = []
@@ -226,12 +235,12 @@ class ObstacleContact:
         from .motion import FAST_NONE, FAST_PLANE, FAST_SPHERE, KIND_PLANE, KIND_SPHERE, ObstacleReach
 
         reaches = []
-        for ob, data in zip(ordered, self._data.numpy()):
+        for ob, data, pad in zip(ordered, self._data.numpy(), self.pads):
             c, q = ob.pose(0.0)
             r = ObstacleReach()
             r.origin = wp.vec3(*c)
             r.normal = wp.vec3(*quat_rotate(q, (0.0, 1.0, 0.0)))
-            r.bound = float(ob._bound())
+            r.bound = float(ob._bound()) + pad
             r.plane = int(ob.kind == KIND_PLANE)
             r.sweep = 0.0
             r.turn = 0.0

@@ -60,6 +60,7 @@ from .broadphase import ClothBroadPhase, cloth_bounds_kernel
 from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, f3,
                        point_triangle_closest, segment_segment_closest, vt_impact)
 from .motion import KIND_BOX, KIND_SPHERE
+from .obstacles import sphere_needs_features
 from .record import (KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, entry_gap,
                      record_append, record_threads)
 
@@ -921,7 +922,7 @@ class FeatureContact:
         #: the sphere centres kept as sharp vertices: the first ones (`respond_spheres_again`)
         self.num_spheres = 0
         for a, radius in spheres:
-            if L0 * L0 / (8.0 * radius) - h <= 0.5 * h:
+            if not sphere_needs_features(contact.analytic[a], L0, h):
                 continue
             local.append(np.zeros((1, 3)))
             pose_of.append(np.full(1, a))

@@ -1,8 +1,8 @@
 """Robustness sweep of cases not in `warp-cloth bench meshes`, checked per written frame in
 float64 with the bench's checkers: ``python docs/bench/probes/robust.py CASE SOLVER [FRAMES]``
 (CASE: fine highdrop rotbox sweep meshmove corner bigstep heavy pinch headon tube throw
-spinwrap fasttwist; env TH, FPS) prints one
-JSON row. Measured 2026-12-07 (36 runs): docs/bench/selfcollision.md."""
+spinwrap fasttwist graded massratio squeeze stiff; env TH, FPS) prints one
+JSON row. Measured 2026-12-07: docs/bench/selfcollision.md."""
 import sys, os, math, time, json, tempfile, numpy as np
 from warp_cloth.util import quiet_warp
 quiet_warp()
@@ -15,7 +15,7 @@ from warp_cloth.usd import read_points
 case, solver = sys.argv[1], sys.argv[2]
 frames = int(sys.argv[3]) if len(sys.argv) > 3 else 90
 th = float(os.environ.get("TH", "0.005")); fps = float(os.environ.get("FPS", "60"))
-x0 = pins = None; substeps = None; density = 0.15; k = 1000.0
+x0 = pins = None; masses_arg = None; substeps = None; density = 0.15; k = 1000.0
 if case == "fine":  # edges (4 mm) shorter than the thickness
     mesh = TriMesh.grid(40, 40, size=0.16, plane="xz", origin=(-0.08, th, -0.08), name="cloth")
     x0 = _fold(mesh.vertices, 0.0, 120.0, th); obs = [Plane()]
@@ -74,6 +74,28 @@ elif case == "throw":  # a ball thrown at 8 m/s into a sheet hanging from its to
 elif case == "spinwrap":  # dropped on a sphere turning at 12 rad/s about the vertical
     mesh = TriMesh.grid(24, 24, size=1.0, plane="xz", origin=(-0.5, 0.5, -0.5), name="cloth")
     obs = [Sphere(0.2, (0.0, 0.2, 0.0), motion=Motion(angular_velocity=(0, 12.0, 0))), Plane()]
+elif case == "graded":  # cells from ~2 mm to ~6 cm (geometric), slivers, folded on the floor
+    g = np.cumsum(np.concatenate([[0.0], 0.002 * 1.25 ** np.arange(16)])); g = g / g[-1] * 0.8 - 0.4
+    h = np.linspace(-0.4, 0.4, 9)
+    V = np.array([[x, th, z] for z in h for x in g]); nx = len(g)
+    T = []
+    for j in range(len(h) - 1):
+        for i in range(nx - 1):
+            a0 = j * nx + i; T += [[a0, a0 + nx, a0 + 1], [a0 + 1, a0 + nx, a0 + nx + 1]]
+    mesh = TriMesh(V, np.array(T), name="cloth")
+    x0 = _fold(mesh.vertices, float(g[9]), 150.0, th); obs = [Plane()]
+elif case == "massratio":  # checkerboard masses 1:1000 (0.15 kg/m^2 in all) dropped onto a sphere
+    mesh = jittered_grid(20, 0.8, 13, 0.6)
+    nv = len(mesh.vertices); masses_arg = np.where(np.arange(nv) % 2 == 0, 1e-3, 1.0); masses_arg *= 0.15 * 0.64 / masses_arg.sum()
+    obs = [Sphere(0.15, (0.0, 0.15, 0.0)), Plane()]
+elif case == "squeeze":  # a fold on the floor pressed by a box whose bottom comes down to 3 cm
+    mesh = jittered_grid(16, 0.6, 3, th, keep_column=0.0)
+    x0 = _fold(mesh.vertices, 0.0, 175.0, th)
+    path = KeyframePath([0.0, 0.3, 1.0, 2.0], [[0, 0.3, 0], [0, 0.3, 0], [0, 0.03 + 0.1, 0], [0, 0.13, 0]])
+    obs = [Box((0.5, 0.1, 0.5), (0.0, 0.0, 0.0), motion=Motion(path=path)), Plane()]
+elif case == "stiff":  # light, very stiff cloth (0.1 kg/m^2, 1e5 N/m) dropped onto a sphere
+    mesh = jittered_grid(24, 1.0, 21, 0.8); density = 0.1; k = 1.0e5
+    obs = [Sphere(0.2, (0.0, 0.2, 0.0)), Plane()]
 elif case == "fasttwist":  # the twist at 2 pi rad/s, 25 x 25 vertices
     from warp_cloth.contact_scenes import twist
     tw = twist(solver=solver, res=24, rate=2 * math.pi, frames=frames)
@@ -82,7 +104,7 @@ elif case == "fasttwist":  # the twist at 2 pi rad/s, 25 x 25 vertices
 else:
     raise SystemExit("case?")
 if case != "fasttwist":
-    model = ClothModel(mesh, density=density, stretch_stiffness=k, damping=0.1, pins=pins,
+    model = ClothModel(mesh, density=density, masses=masses_arg, stretch_stiffness=k, damping=0.1, pins=pins,
                        velocity=vel if case == "headon" else None)
 if case != "fasttwist":
     if x0 is not None: model.initial_positions = x0
