@@ -614,14 +614,23 @@ def _box(hx, hy, hz):
     return TriMesh(v, np.array(t), name="box")
 
 
-def test_sphere_contact_pad_is_the_dip_of_a_stretched_edge():
-    """`sphere_contact_pad`: 0 for a sphere flat enough for the cloth's edges, the sagitta of
-    an edge 5 % longer than the longest rest edge less the thickness for one curved enough that
-    such an edge between held vertices would enter it, 0 again past half the thickness of dip
-    at rest (the triangle entries of `FeatureContact` take over there)."""
-    from warp_cloth.collision.obstacles import (SPHERE_EDGE_STRETCH, sphere_contact_pad,
-                                                sphere_needs_features)
+def test_sphere_contact_pad_is_the_dip_of_a_stretched_chord():
+    """`cloth_chord`: the largest smallest-enclosing-circle diameter over the triangles (a right
+    triangle's hypotenuse, an equilateral one's 2 / sqrt(3) of its edge, an obtuse one's
+    longest edge). `sphere_contact_pad`: 0 for a sphere flat enough for that chord, the
+    sagitta of the chord 5 % longer less the thickness for one curved enough that the chord's
+    middle between held vertices would enter it, 0 again past half the thickness of dip at
+    rest (the triangle entries of `FeatureContact` take over there)."""
+    from warp_cloth.collision.obstacles import (SPHERE_EDGE_STRETCH, cloth_chord,
+                                                sphere_contact_pad, sphere_needs_features)
 
+    right = np.array([[0, 0, 0], [0.3, 0, 0], [0, 0, 0.4]])
+    assert cloth_chord(right, [[0, 1, 2]]) == pytest.approx(0.5, rel=1e-12)
+    equi = np.array([[0, 0, 0], [0.1, 0, 0], [0.05, 0, 0.05 * np.sqrt(3)]])
+    assert cloth_chord(equi, [[0, 1, 2]]) == pytest.approx(0.2 / np.sqrt(3), rel=1e-9)
+    obtuse = np.array([[0, 0, 0], [1.0, 0, 0], [0.5, 0, 0.1]])
+    both = np.vstack([obtuse, right + 5.0])
+    assert cloth_chord(both, [[0, 1, 2], [3, 4, 5]]) == pytest.approx(1.0, rel=1e-12)
     h, L = 0.005, 0.1
     assert sphere_contact_pad(Sphere(1.0), L, h) == 0.0  # L^2 / 8R = 1.25 mm
     ball = Sphere(0.22)  # at rest 5.68 mm: 0.68 mm into it
@@ -632,39 +641,73 @@ def test_sphere_contact_pad_is_the_dip_of_a_stretched_edge():
     assert sphere_needs_features(small, L, h) and sphere_contact_pad(small, L, h) == 0.0
 
 
-@pytest.mark.parametrize("solver_name,spin", [("explicit", 0.0), ("implicit", 0.0),
-                                               ("pbd", 0.0), ("pd", 0.0), ("explicit", 1.0),
-                                               ("pd", 1.0)])
-def test_cloth_edges_stay_outside_a_curved_sphere(solver_name, spin):
+def _lattice(n: int, a: float, height: float):
+    """A sheet of ``n`` x ``n`` rows of equilateral triangles of edge ``a`` at ``height``."""
+    from warp_cloth.mesh import TriMesh
+
+    idx, pts = {}, []
+    for j in range(n + 1):
+        for i in range(n + 1):
+            idx[i, j] = len(pts)
+            pts.append([(i + 0.5 * (j % 2) - 0.5 * n) * a, height,
+                        (j - 0.5 * n) * a * np.sqrt(3) / 2])
+    tris = []
+    for j in range(n):
+        for i in range(n):
+            if j % 2 == 0:
+                tris += [[idx[i, j], idx[i, j + 1], idx[i + 1, j]],
+                         [idx[i + 1, j], idx[i, j + 1], idx[i + 1, j + 1]]]
+            else:
+                tris += [[idx[i, j], idx[i + 1, j + 1], idx[i + 1, j]],
+                         [idx[i, j], idx[i, j + 1], idx[i + 1, j + 1]]]
+    return TriMesh(np.array(pts), np.array(tris), name="cloth")
+
+
+@pytest.mark.parametrize("solver_name,spin,cells", [
+    ("explicit", 0.0, "grid"), ("implicit", 0.0, "grid"), ("pbd", 0.0, "grid"),
+    ("pd", 0.0, "grid"), ("explicit", 1.0, "grid"), ("pd", 1.0, "grid"),
+    ("pd", 0.0, "equilateral")])
+def test_cloth_stays_outside_a_curved_sphere(solver_name, spin, cells):
     """A 10 x 10 sheet (8 cm cells) settling on a 0.25 m sphere: its rest diagonals between
     vertices held the thickness out would dip 1.4 mm into the sphere (measured without the pad:
     1.3-1.5 mm inside, explicit and PD); with the vertex contact's radius padded
-    (`sphere_contact_pad`, 2.06 mm) no point along any edge is inside the sphere in any frame.
-    A static sphere and one turning about the vertical (the moving obstacles' kernels)."""
+    (`sphere_contact_pad`, 2.06 mm) no point of any edge or triangle is inside the sphere in
+    any frame. A static sphere and one turning about the vertical (the moving obstacles'
+    kernels); and a sheet of equilateral triangles (9 cm edges), whose edges stay out without
+    a pad but whose triangles' middles went 0.44 mm in (the pad from the longest edge alone)."""
     from warp_cloth.mesh import TriMesh
     from warp_cloth.model import ClothModel
     from warp_cloth.scene import suggest_substeps
 
-    mesh = TriMesh.grid(10, 10, size=0.8, plane="xz", origin=(-0.4, 0.3, -0.4), name="cloth")
+    if cells == "grid":
+        mesh = TriMesh.grid(10, 10, size=0.8, plane="xz", origin=(-0.4, 0.3, -0.4), name="cloth")
+        pad = 0.00206
+    else:
+        mesh = _lattice(10, 0.09, 0.3)
+        pad = 0.00095
     model = ClothModel(mesh, density=0.2, stretch_stiffness=1000.0, damping=0.5)
     ball = Sphere(0.25, (0.0, 0.0, 0.0), motion=Motion(angular_velocity=(0.0, spin, 0.0)))
     stage = CollisionStage(model, [ball], thickness=0.005, friction=0.5, self_collision=False)
-    assert stage.contact.pads[0] == pytest.approx(0.00206, abs=1e-5)
+    assert stage.contact.pads[0] == pytest.approx(pad, abs=1e-5)
     solver = make_solver(solver_name, model, collision=stage)
     st = model.state()
     sub = suggest_substeps(solver, 1 / 60)
-    edges = np.asarray(mesh.edges)
+    edges, tris = np.asarray(mesh.edges), np.asarray(mesh.triangles)
     s = np.linspace(0.0, 1.0, 11)[:, None, None]
+    bary = np.array([[u, v, 1 - u - v] for u in np.linspace(0, 1, 9)
+                     for v in np.linspace(0, 1, 9) if u + v <= 1])
     worst = np.inf
     for _ in range(60):
         for _ in range(sub):
             solver.step(st, 1 / 60 / sub)
         p = st.positions()
         pts = (p[edges[:, 0]][None] * (1 - s) + p[edges[:, 1]][None] * s).reshape(-1, 3)
-        worst = min(worst, float(ball.signed_distance(pts, st.t).min()))
-    assert worst > 0.0, f"an edge point {-worst * 1e3:.3f} mm inside the sphere"
+        inner = np.einsum("bk,tkd->btd", bary, p[tris]).reshape(-1, 3)
+        worst = min(worst, float(ball.signed_distance(pts, st.t).min()),
+                    float(ball.signed_distance(inner, st.t).min()))
+    assert worst > 0.0, f"a cloth point {-worst * 1e3:.3f} mm inside the sphere"
     # the cloth rests on it: vertices at the padded radius plus the thickness
-    assert float(ball.signed_distance(p, st.t).min()) == pytest.approx(0.00706, abs=2e-4)
+    assert float(ball.signed_distance(p, st.t).min()) == pytest.approx(0.005 + pad, abs=2e-4)
 
 
 def test_sharp_features_are_the_edges_a_cloth_edge_can_cut():

@@ -161,12 +161,14 @@ class FloorSphereContact:
         self.model = model
         self.thickness, self.slack = contact.thickness, contact.slack
         self.friction = contact.friction
+        # the radius the contact's kernels see (its pad: `obstacles.sphere_contact_pad`)
+        self.radius = RADIUS + max(contact.pads)
         if np.any(model.inverse_masses == 0):
             raise ValueError("the floor kernel skips the pinned-vertex test: the sheet has no pins")
 
     def apply(self, state, x_start, dt):
         wp.launch(floor_sphere_kernel, self.model.num_vertices,
-                  [state.x, x_start, state.v, wp.vec3(*CENTER), RADIUS, self.thickness,
+                  [state.x, x_start, state.v, wp.vec3(*CENTER), self.radius, self.thickness,
                    self.slack, self.friction], device=self.model.device)
 
 
@@ -251,15 +253,16 @@ class Setup:
         self.times = {name: [] for name in self.variants}
 
     def _count_contacts(self) -> int:
-        """Vertices within ``thickness + slack`` of an obstacle at the snapshot or at the end of
-        some substep of one frame from it (with contact); host reads, not timed."""
+        """Vertices within ``thickness + slack`` of an obstacle (beyond its pad,
+        `ObstacleContact.contact_distances`) at the snapshot or at the end of some substep of
+        one frame from it (with contact); host reads, not timed."""
         c = self.contact
         reach = c.thickness + c.slack + 1e-4
         touched = np.zeros(self.model.num_vertices, dtype=bool)
         for k in range(self.substeps + 1):
             if k:
                 self.solver.step(self.state, self.dt)
-            touched |= c.signed_distances(self.state.positions(), self.state.t).min(axis=0) < reach
+            touched |= c.contact_distances(self.state.positions(), self.state.t).min(axis=0) < reach
         self.restore()
         return int(touched.sum())
 

@@ -96,7 +96,7 @@ import warp as wp
 
 from ..util import launch
 from .motion import KIND_MESH, quat_rotate
-from .obstacles import Obstacle, Sphere, sphere_contact_pad
+from .obstacles import Obstacle, Sphere, cloth_chord, sphere_contact_pad
 
 __all__ = ["ObstacleContact", "PENETRATION_TOLERANCE", "DEFAULT_THICKNESS", "DEFAULT_FRICTION",
            "DEFAULT_RESTITUTION", "NEAR_BATCH"]
@@ -209,13 +209,11 @@ class ObstacleContact:
         from .motion import ObstacleData
 
         ordered = self.analytic + self.meshes  # pose k of `poses` belongs to ordered[k]
-        # spheres whose curvature a cloth edge between held vertices would cut into: their
+        # spheres whose curvature a cloth triangle between held vertices would cut into: their
         # radius padded for the vertex contact (`sphere_contact_pad`)
-        v = np.asarray(model.mesh.vertices, dtype=np.float64)
-        e = np.asarray(model.mesh.edges).reshape(-1, 2)
-        rest_max = float(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1).max()) if len(e) else 0.0
+        chord = cloth_chord(model.mesh.vertices, model.mesh.triangles)
         #: m added to each obstacle's radius for the vertex contact (`ordered` order; spheres)
-        self.pads = [sphere_contact_pad(ob, rest_max, self.thickness)
+        self.pads = [sphere_contact_pad(ob, chord, self.thickness)
                      if isinstance(ob, Sphere) else 0.0 for ob in ordered]
         self._data = wp.array(
             [ob.device_data(start_of[id(ob)], self.friction, self.restitution, pad)
@@ -582,6 +580,13 @@ class ObstacleContact:
     def signed_distances(self, positions, t: float) -> np.ndarray:
         """(num_obstacles, N) signed distances of host positions at time ``t`` (tests, reports)."""
         return np.stack([ob.signed_distance(positions, t) for ob in self.obstacles])
+
+    def contact_distances(self, positions, t: float) -> np.ndarray:
+        """`signed_distances` less each obstacle's pad (`pads`): the distances the contact holds
+        at the thickness or more (a padded sphere's cloth rests the pad farther out)."""
+        pad = {id(ob): p for ob, p in zip(self.analytic + self.meshes, self.pads)}
+        return (self.signed_distances(positions, t)
+                - np.array([pad[id(ob)] for ob in self.obstacles])[:, None])
 
     def max_penetration(self, state) -> float:
         """Deepest penetration (m, >= 0) of any unpinned vertex into any obstacle, now."""

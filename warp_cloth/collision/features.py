@@ -11,9 +11,10 @@ the longest cloth edge stretched by 20 %), boundary and non-manifold edges, and 
 elsewhere a cloth edge may cut at most half the thickness into the surface between its vertices.
 The 960-triangle torus of the ``mesh`` scene (tube radius 8 cm) has no such feature for the
 default 32 x 32 sheet, and pays nothing; a blade or a thin tube does. Boxes are meshes of their
-12 triangles here (edges and corners). A `Sphere` whose curvature a rest-length cloth edge cuts
-into by more than half the thickness gets its centre as a sharp vertex with its radius added to
-the separation (`_sphere_pair`); the others pay nothing.
+12 triangles here (edges and corners). A `Sphere` whose curvature a rest-length cloth triangle
+(`obstacles.cloth_chord`) cuts into by more than half the thickness gets its centre as a sharp
+vertex with its radius added to the separation (`_sphere_pair`); one it cuts into by less has
+the vertex contact's radius padded (`obstacles.sphere_contact_pad`); the others pay nothing.
 
 Each step, on the paths from ``x_start`` to ``x`` (cloth) and from the pose at ``t`` to the pose
 at ``t + dt`` (obstacle):
@@ -60,7 +61,7 @@ from .broadphase import ClothBroadPhase, cloth_bounds_kernel
 from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, f3,
                        point_triangle_closest, segment_segment_closest, vt_impact)
 from .motion import KIND_BOX, KIND_SPHERE
-from .obstacles import sphere_needs_features
+from .obstacles import cloth_chord, sphere_needs_features
 from .record import (KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, entry_gap,
                      record_append, record_threads)
 
@@ -906,18 +907,20 @@ class FeatureContact:
         radii = []
         #: record room for the sphere centres' entries (`capacity`)
         self._sphere_room = 0
-        # a sphere that a cloth edge at its rest length ``L0`` can cut into by more than half
-        # the thickness (``L0^2 / (8 R) - h``, as for a mesh's curved part, but without the
-        # stretch margin): its centre is a sharp vertex with the radius added to the separation
+        # a sphere that a cloth triangle (its rest chord ``L0``, `cloth_chord`: for a grid the
+        # diagonal) can cut into by more than half the thickness (``L0^2 / (8 R) - h``, as for a
+        # mesh's curved part, but without the stretch margin; `sphere_needs_features`): its
+        # centre is a sharp vertex with the radius added to the separation
         # (`vertex_triangle_kernel`), so the cloth triangles keep the thickness from its
-        # surface, not only the vertices. Measured: an 8 x 8 sheet (1 m) dropped on a 0.1 m
-        # sphere, its triangles 17 / 16 / 43 / 38 mm inside the sphere (explicit / implicit /
-        # PBD / PD) with vertex contact only; none closer than 4.95 mm with these entries.
-        # The entries lift the triangle's vertices off their own contacts: their friction
-        # (`friction`) carries the sheet then. Before it had any, with the stretch margin, the
-        # 10 x 10 sheet (0.8 m) on a 0.3 m sphere that spins (a rest diagonal cuts 0.3 mm into
-        # it) was no longer carried round under PBD and PD
-        L0 = float(rest.max()) if len(rest) else 0.0
+        # surface, not only the vertices (a sphere it dips into by less has the vertex
+        # contact's radius padded instead: `obstacles.sphere_contact_pad`). Measured: an 8 x 8
+        # sheet (1 m) dropped on a 0.1 m sphere, its triangles 17 / 16 / 43 / 38 mm inside the
+        # sphere (explicit / implicit / PBD / PD) with vertex contact only; none closer than
+        # 4.95 mm with these entries. The entries lift the triangle's vertices off their own
+        # contacts: their friction (`friction`) carries the sheet then. Before it had any, with
+        # the stretch margin, the 10 x 10 sheet (0.8 m) on a 0.3 m sphere that spins (a rest
+        # diagonal cuts 0.3 mm into it) was no longer carried round under PBD and PD
+        L0 = cloth_chord(model.mesh.vertices, model.mesh.triangles)
         areas = model.mesh.triangle_areas()
         #: the sphere centres kept as sharp vertices: the first ones (`respond_spheres_again`)
         self.num_spheres = 0
