@@ -437,16 +437,16 @@ class MeshObstacle(Obstacle):
         return m
 
 
-#: cloth lying on a sphere is taken this much longer than its longest rest edge when its vertex
-#: contact is padded (`sphere_contact_pad`): cloth stretches a few percent
+#: cloth lying on a sphere is taken this much longer than at rest (its `cloth_chord`) when its
+#: vertex contact is padded (`sphere_contact_pad`): cloth stretches a few percent
 SPHERE_EDGE_STRETCH = 1.05
 
 
-def sphere_needs_features(sphere: "Sphere", rest_max: float, thickness: float) -> bool:
-    """Whether a cloth whose longest rest edge is ``rest_max`` m would cut more than half the
+def sphere_needs_features(sphere: "Sphere", chord: float, thickness: float) -> bool:
+    """Whether a cloth whose rest `cloth_chord` is ``chord`` m would cut more than half the
     thickness into ``sphere`` between vertices held the thickness out: its triangles are then
     kept out too (`features.FeatureContact`, the sphere's centre as a sharp vertex)."""
-    return sphere.edge_dip(rest_max, thickness) > 0.5 * float(thickness)
+    return sphere.edge_dip(chord, thickness) > 0.5 * float(thickness)
 
 
 def cloth_chord(vertices, triangles) -> float:

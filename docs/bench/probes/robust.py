@@ -1,7 +1,7 @@
 """Robustness sweep of cases not in `warp-cloth bench meshes`, checked per written frame in
 float64 with the bench's checkers: ``python docs/bench/probes/robust.py CASE SOLVER [FRAMES]``
 (CASE: fine highdrop rotbox sweep meshmove corner bigstep heavy pinch headon tube throw
-spinwrap fasttwist graded massratio squeeze stiff; env TH, FPS) prints one
+spinwrap fasttwist graded massratio squeeze stiff lowpoly spinbox tiltbox; env TH, FPS) prints one
 JSON row. Measured 2026-12-07: docs/bench/selfcollision.md."""
 import sys, os, math, time, json, tempfile, numpy as np
 from warp_cloth.util import quiet_warp
@@ -11,6 +11,33 @@ from warp_cloth.collision import CollisionStage, Box, Plane, Sphere, MeshObstacl
 from warp_cloth.contact_scenes import thin_parts_mesh
 from warp_cloth.bench.meshes import edges_of, segment_triangle_hits, jittered_grid, _fold
 from warp_cloth.usd import read_points
+
+
+def _icosphere(sub, r):
+    """An icosahedron subdivided ``sub`` times, on a sphere of radius ``r``."""
+    t = (1 + 5 ** 0.5) / 2
+    V = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t],
+         [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
+    F = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+         [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+         [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
+    V = [np.array(v, float) / np.linalg.norm(v) for v in V]
+    for _ in range(sub):
+        mid, F2 = {}, []
+
+        def m(a, b):
+            k = (min(a, b), max(a, b))
+            if k not in mid:
+                p = V[a] + V[b]
+                V.append(p / np.linalg.norm(p))
+                mid[k] = len(V) - 1
+            return mid[k]
+        for a, b, c in F:
+            ab, bc, ca = m(a, b), m(b, c), m(c, a)
+            F2 += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+        F = F2
+    return np.array(V) * r, np.array(F)
+
 
 case, solver = sys.argv[1], sys.argv[2]
 frames = int(sys.argv[3]) if len(sys.argv) > 3 else 90
@@ -96,6 +123,18 @@ elif case == "squeeze":  # a fold on the floor pressed by a box whose bottom com
 elif case == "stiff":  # light, very stiff cloth (0.1 kg/m^2, 1e5 N/m) dropped onto a sphere
     mesh = jittered_grid(24, 1.0, 21, 0.8); density = 0.1; k = 1.0e5
     obs = [Sphere(0.2, (0.0, 0.2, 0.0)), Plane()]
+elif case == "lowpoly":  # a sheet draped over a coarse icosphere mesh (env SUB subdivisions,
+    # default 1: 21 degree creases, which the sheet's 59 mm diagonals could dip 0.35 mm past)
+    V, F = _icosphere(int(os.environ.get("SUB", "1")), 0.25)
+    mesh = TriMesh.grid(24, 24, size=1.0, plane="xz", origin=(-0.5, 0.6, -0.5), name="cloth")
+    obs = [MeshObstacle(TriMesh(V, F, name="ico"), name="ico", position=(0, 0.3, 0)), Plane()]
+elif case == "spinbox":  # dropped on a box turning at 6 rad/s about the vertical
+    mesh = jittered_grid(20, 0.8, 17, 0.45)
+    obs = [Box((0.25, 0.1, 0.15), (0.0, 0.2, 0.0), motion=Motion(angular_velocity=(0, 6.0, 0))), Plane()]
+elif case == "tiltbox":  # dropped on a box rocking about x (keyframed, +-0.5 rad at 1 Hz)
+    mesh = jittered_grid(20, 0.8, 19, 0.5)
+    tt = np.linspace(0, 3, 61); qs = [[math.sin(0.25 * math.sin(2 * math.pi * u)), 0, 0, math.cos(0.25 * math.sin(2 * math.pi * u))] for u in tt]
+    obs = [Box((0.3, 0.05, 0.3), (0.0, 0.2, 0.0), motion=Motion(path=KeyframePath(tt, np.zeros((len(tt), 3)), qs))), Plane()]
 elif case == "fasttwist":  # the twist at 2 pi rad/s, 25 x 25 vertices
     from warp_cloth.contact_scenes import twist
     tw = twist(solver=solver, res=24, rate=2 * math.pi, frames=frames)
