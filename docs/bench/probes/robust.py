@@ -1,7 +1,7 @@
 """Robustness sweep of cases not in `warp-cloth bench meshes`, checked per written frame in
 float64 with the bench's checkers: ``python docs/bench/probes/robust.py CASE SOLVER [FRAMES]``
 (CASE: fine highdrop rotbox sweep meshmove corner bigstep heavy pinch headon tube throw
-spinwrap fasttwist graded massratio squeeze stiff lowpoly spinbox tiltbox; env TH, FPS) prints one
+spinwrap fasttwist graded massratio squeeze stiff lowpoly spinbox tiltbox ribbon; env TH, FPS) prints one
 JSON row. Measured 2026-12-07: docs/bench/selfcollision.md."""
 import sys, os, math, time, json, tempfile, numpy as np
 from warp_cloth.util import quiet_warp
@@ -42,7 +42,7 @@ def _icosphere(sub, r):
 case, solver = sys.argv[1], sys.argv[2]
 frames = int(sys.argv[3]) if len(sys.argv) > 3 else 90
 th = float(os.environ.get("TH", "0.005")); fps = float(os.environ.get("FPS", "60"))
-x0 = pins = None; masses_arg = None; substeps = None; density = 0.15; k = 1000.0
+x0 = pins = None; masses_arg = None; pin_path = None; substeps = None; density = 0.15; k = 1000.0
 if case == "fine":  # edges (4 mm) shorter than the thickness
     mesh = TriMesh.grid(40, 40, size=0.16, plane="xz", origin=(-0.08, th, -0.08), name="cloth")
     x0 = _fold(mesh.vertices, 0.0, 120.0, th); obs = [Plane()]
@@ -135,6 +135,20 @@ elif case == "tiltbox":  # dropped on a box rocking about x (keyframed, +-0.5 ra
     mesh = jittered_grid(20, 0.8, 19, 0.5)
     tt = np.linspace(0, 3, 61); qs = [[math.sin(0.25 * math.sin(2 * math.pi * u)), 0, 0, math.cos(0.25 * math.sin(2 * math.pi * u))] for u in tt]
     obs = [Box((0.3, 0.05, 0.3), (0.0, 0.2, 0.0), motion=Motion(path=KeyframePath(tt, np.zeros((len(tt), 3)), qs))), Plane()]
+elif case == "ribbon":  # a 2 x 60 cm ribbon (2 x 60 cells) hung by one end that whips about
+    from warp_cloth.model import PinPath
+    w, L, nw, nl = 0.02, 0.6, 2, 60
+    V = np.array([[i * w / nw, 0.75 - j * L / nl, 0.0] for j in range(nl + 1) for i in range(nw + 1)])
+    T = []
+    for j in range(nl):
+        for i in range(nw):
+            a0 = j * (nw + 1) + i
+            T += [[a0, a0 + nw + 1, a0 + 1], [a0 + 1, a0 + nw + 1, a0 + nw + 2]]
+    mesh = TriMesh(V, np.array(T), name="cloth"); obs = [Plane()]
+    pins = np.arange(nw + 1); p0 = V[pins]
+    pin_path = PinPath.from_function(
+        lambda t, p0=p0: p0 + np.array([0.3 * math.sin(6.0 * t), -0.3 * min(t, 1.0), 0.2 * math.sin(4.0 * t)]),
+        np.linspace(0, frames / fps + 0.1, 400))
 elif case == "fasttwist":  # the twist at 2 pi rad/s, 25 x 25 vertices
     from warp_cloth.contact_scenes import twist
     tw = twist(solver=solver, res=24, rate=2 * math.pi, frames=frames)
@@ -143,7 +157,7 @@ elif case == "fasttwist":  # the twist at 2 pi rad/s, 25 x 25 vertices
 else:
     raise SystemExit("case?")
 if case != "fasttwist":
-    model = ClothModel(mesh, density=density, masses=masses_arg, stretch_stiffness=k, damping=0.1, pins=pins,
+    model = ClothModel(mesh, density=density, masses=masses_arg, pin_path=pin_path, stretch_stiffness=k, damping=0.1, pins=pins,
                        velocity=vel if case == "headon" else None)
 if case != "fasttwist":
     if x0 is not None: model.initial_positions = x0
