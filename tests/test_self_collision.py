@@ -167,6 +167,43 @@ def test_cli_check_tests_every_mesh_in_world_space(tmp_path, capsys):
     assert rc == 0 and rep["between_rigid"] == [2] and rep["crossings"] == [0]
 
 
+def test_cli_check_measures_cloth_edges_inside_spheres_and_cubes(tmp_path, capsys):
+    """`warp-cloth check` also samples the animated meshes' edges against the stage's spheres
+    and cubes, in each solid's frame: a sphere of radius 0.5 scaled 2 about (1, 2, 3), an edge
+    passing 0.9 from its centre: one sample (the middle) inside, 0.1 m deep; a cube (size 2,
+    scaled to half extents 0.5 / 0.2 / 0.3, turned 90 degrees about y) at (-3, 0, 0), an edge
+    along x at y = 0.15: 3 samples inside, 0.05 m deep (along its y, and its z, which the turn
+    lays along x). Nothing inside at time 0; exit status 1."""
+    from pxr import Gf, Usd, UsdGeom
+
+    far = [[0, 10, 0], [1, 10, 0], [0, 11, 0]]
+    ball = [[-1, 2.9, 3], [3, 2.9, 3], [1, 10, 3]]
+    box = [[-4, 0.15, 0], [-2, 0.15, 0], [-3, 10, 0]]
+    f = tmp_path / "solids.usda"
+    _stage(f, [("cloth", [[0, 1, 2]], [far, ball, box], (0, 0, 0))], times=[0, 1, 2])
+    st = Usd.Stage.Open(str(f))
+    xf = UsdGeom.Xform.Define(st, "/World/ball")
+    xf.AddTranslateOp().Set(Gf.Vec3d(1, 2, 3))
+    xf.AddScaleOp().Set(Gf.Vec3f(2, 2, 2))
+    UsdGeom.Sphere.Define(st, "/World/ball/geom").CreateRadiusAttr(0.5)
+    xf = UsdGeom.Xform.Define(st, "/World/box")
+    xf.AddTranslateOp().Set(Gf.Vec3d(-3, 0, 0))
+    xf.AddRotateYOp().Set(90.0)
+    xf.AddScaleOp().Set(Gf.Vec3f(0.5, 0.2, 0.3))
+    UsdGeom.Cube.Define(st, "/World/box/geom")
+    st.GetRootLayer().Save()
+    rc, rep = _check_json([str(f)], capsys)
+    assert rc == 1 and rep["crossings"] == [0, 0, 0]
+    assert rep["solids"] == ["/World/ball/geom (sphere)", "/World/box/geom (cube)"]
+    assert rep["inside_solids"] == [0, 1, 3] and rep["frames_inside_solids"] == 2
+    assert rep["inside_depth"] == pytest.approx([0.0, 0.1, 0.05], abs=1e-6)
+    # the same cloth without the solids: clean
+    g = tmp_path / "none.usda"
+    _stage(g, [("cloth", [[0, 1, 2]], [far, ball, box], (0, 0, 0))], times=[0, 1, 2])
+    rc, rep = _check_json([str(g)], capsys)
+    assert rc == 0 and rep["solids"] == [] and rep["inside_solids"] == [0, 0, 0]
+
+
 def test_cli_check_takes_any_mesh_static_polygons_degenerate_and_non_manifold(tmp_path, capsys):
     """A mesh that is no valid cloth (a quad, a zero-area triangle, an edge with three
     triangles) and has no time samples: read once, tested as it is, and its one crossing

@@ -257,7 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
     _sweep_arguments(w)
 
     c = sub.add_parser("check", help="intersections per frame of a USD file's meshes (each "
-                       "mesh through itself and through the others)")
+                       "mesh through itself and through the others) and animated mesh edges "
+                       "inside its spheres and cubes")
     c.add_argument("file", help="a .usd/.usda/.usdc/.usdz with one or more meshes (animated "
                    "or not)")
     c.add_argument("--prim", action="append", default=None, metavar="PATH",
@@ -448,8 +449,9 @@ def cmd_info() -> int:
 
 def cmd_check(args, parser) -> int:
     """Per frame, the (edge, triangle) pairs of the stage's meshes that pass through each other
-    (sharing no vertex), within each mesh and between meshes, in world space. Exit status 1
-    when any frame has one or a non-finite point, 2 on an unreadable file."""
+    (sharing no vertex), within each mesh and between meshes, in world space, and the points
+    along the animated meshes' edges inside the stage's spheres and cubes (`solid_depths`).
+    Exit status 1 when any frame has one or a non-finite point, 2 on an unreadable file."""
     import json
 
     init_warp()
@@ -460,15 +462,20 @@ def cmd_check(args, parser) -> int:
         from .usd import read_meshes
 
         times, tracks = read_meshes(path, args.prim)
+        from .usd import read_solids
+
+        solids = read_solids(path, times)
     except Exception as e:  # noqa: BLE001 - any unreadable stage is a usage error here
         print(f"warp-cloth check: cannot read meshes from {path}: {e}", file=sys.stderr)
         return 2
-    from .collision.check import check_meshes
+    from .collision.check import check_meshes, solid_depths
 
     rep = check_meshes(tracks)
+    dep = solid_depths(tracks, solids)
     per_frame, nonfinite = rep["crossings"], rep["nonfinite"]
     bad = [i for i, c in enumerate(per_frame) if c]
     broken = [i for i, c in enumerate(nonfinite) if c]
+    inside = [i for i, c in enumerate(dep["inside"]) if c]
     if args.json:
         print(json.dumps({"file": path, "frames": len(per_frame),
                           "times": [None if t != t else float(t) for t in times],
@@ -476,7 +483,10 @@ def cmd_check(args, parser) -> int:
                           "meshes": [t.path for t in tracks], "per_mesh": rep["per_mesh"],
                           "between": rep["between"], "between_rigid": rep["between_rigid"],
                           "nonfinite": nonfinite,
-                          "frames_with_nonfinite": len(broken)}))
+                          "frames_with_nonfinite": len(broken),
+                          "solids": [f"{x.path} ({x.kind})" for x in solids],
+                          "inside_solids": dep["inside"], "inside_depth": dep["depth"],
+                          "frames_inside_solids": len(inside)}))
     else:
         names = [t.path for t in tracks]
         print(f"{path}: {len(names)} mesh{'es' if len(names) != 1 else ''} "
@@ -492,11 +502,18 @@ def cmd_check(args, parser) -> int:
             detail = f" ({'; '.join(parts)})" if parts and len(names) > 1 else ""
             rigid = rep["between_rigid"][f]
             note = (f"; {rigid} between rigid meshes (layout, not counted)" if rigid else "")
+            if dep["inside"][f]:
+                note += (f"; {dep['inside'][f]} edge point(s) inside the solids, deepest "
+                         f"{1e3 * dep['depth'][f]:.3f} mm")
             print(f"{label}: {per_frame[f]} crossing (edge, triangle) pairs{detail}{note}")
         print(f"{len(bad)} of {len(per_frame)} frames with crossings; most in a frame: "
               f"{max(per_frame) if per_frame else 0}"
               + (f"; {len(broken)} with non-finite points" if broken else ""))
-    return 1 if bad or broken else 0
+        if solids:
+            print(f"{len(inside)} of {len(per_frame)} frames with animated mesh edges inside "
+                  f"the {len(solids)} sphere/cube solid(s)"
+                  + (f"; deepest {1e3 * max(dep['depth']):.3f} mm" if inside else ""))
+    return 1 if bad or broken or inside else 0
 
 
 def _read_playback(path, parser, command):

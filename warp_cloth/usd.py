@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import math
 import os
 import re
 import signal
@@ -42,8 +43,8 @@ import numpy as np
 
 from .errors import OutputError
 
-__all__ = ["UsdWriter", "read_points", "read_meshes", "MeshTrack", "fan_triangulate",
-           "OutputError", "frames_dir"]
+__all__ = ["UsdWriter", "read_points", "read_meshes", "MeshTrack", "read_solids", "SolidTrack",
+           "fan_triangulate", "OutputError", "frames_dir"]
 
 _FRAME_FILE = re.compile(r"^(\d{6,})\.usdc$")
 
@@ -464,6 +465,53 @@ class MeshTrack:
     def __repr__(self):
         return (f"MeshTrack({self.path!r}, {len(self.triangles)} triangles, "
                 f"{self.points.shape[1]} points, {self.points.shape[0]} times)")
+
+
+class SolidTrack:
+    """One `UsdGeom.Sphere` or `UsdGeom.Cube` of a stage as `read_solids` returns it: ``path``,
+    ``kind`` (``"sphere"`` or ``"cube"``), ``size`` (F: the radius, or half the cube's edge, in
+    its own frame) and ``matrices`` (F, 4, 4: local to world, USD's row-vector convention) at
+    each of the times asked."""
+
+    def __init__(self, path: str, kind: str, size: np.ndarray, matrices: np.ndarray):
+        self.path, self.kind, self.size, self.matrices = path, kind, size, matrices
+
+    def __repr__(self):
+        return f"SolidTrack({self.path!r}, {self.kind}, {len(self.size)} times)"
+
+
+def read_solids(path, times) -> list:
+    """Every `UsdGeom.Sphere` and `UsdGeom.Cube` of the stage at ``path`` (the implicit solids our
+    writer gives spheres and boxes; instance proxies included), sampled at ``times`` (those of
+    `read_meshes`; a NaN: the default time). Returns a list of `SolidTrack` (empty when there are
+    none). Raises `ValueError` naming the prim for a radius or size that is not a positive
+    finite number."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(os.fspath(path))
+    if stage is None:
+        raise ValueError(f"{path}: not a USD stage")
+    codes = [Usd.TimeCode.Default() if t != t else Usd.TimeCode(float(t)) for t in times]
+    out = []
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        if prim.IsA(UsdGeom.Sphere):
+            kind, attr, half = "sphere", UsdGeom.Sphere(prim).GetRadiusAttr(), 1.0
+        elif prim.IsA(UsdGeom.Cube):
+            kind, attr, half = "cube", UsdGeom.Cube(prim).GetSizeAttr(), 0.5
+        else:
+            continue
+        xf = UsdGeom.Xformable(prim)
+        size, mats = [], []
+        for tc in codes:
+            v = attr.Get(tc)
+            v = float(v) * half if v is not None else float("nan")
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{path}: {prim.GetPath()} has a {kind} size of {v / half!r} at "
+                                 f"time {tc.GetValue():g}: not a positive number")
+            size.append(v)
+            mats.append(np.asarray(xf.ComputeLocalToWorldTransform(tc), dtype=np.float64))
+        out.append(SolidTrack(str(prim.GetPath()), kind, np.asarray(size), np.stack(mats)))
+    return out
 
 
 def fan_triangulate(counts, indices, where: str) -> np.ndarray:

@@ -16,7 +16,7 @@ from ..util import launch
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = ["mesh_edge_crossings", "self_crossings", "SelfIntersectionChecker", "folded_flat_edges",
-           "check_meshes", "edges_of"]
+           "check_meshes", "edges_of", "solid_depths"]
 
 
 #: two triangles on an edge lie folded flat onto each other when the far vertex of one is within
@@ -353,4 +353,53 @@ def check_meshes(tracks, device="cpu") -> dict:
         out["nonfinite"].append(0)
         for k, n in enumerate(names):
             out["per_mesh"][n].append(int(same[k]))
+    return out
+
+
+#: points sampled along each edge (ends included) by `solid_depths`
+SOLID_SAMPLES = 9
+
+
+def solid_depths(tracks, solids, tolerance: float = 1e-6) -> dict:
+    """How deep the deforming meshes of ``tracks`` (`warp_cloth.usd.MeshTrack`, points
+    time-sampled: cloth) go into the implicit solids ``solids`` (`warp_cloth.usd.SolidTrack`:
+    spheres and cubes), per time: `SOLID_SAMPLES` points along every edge (a cloth edge between
+    two vertices held outside can still cut into a curved solid) tested in each solid's own
+    frame. A sphere's depth is ``(r - |p|)`` times the transform's smallest scale (exact for a
+    rotation and a uniform scale, a lower bound for an ellipsoid); a cube's the least of
+    ``(half - |p_i|)`` times the scale of axis ``i`` (exact without shear). Returns ``{"inside":
+    [...], "depth": [...]}``: per time, the sampled points deeper than ``tolerance`` (m) and
+    the deepest depth (m, 0 when none is inside); a time with a non-finite point counts 0."""
+    out = {"inside": [], "depth": []}
+    cloth = [t for t in tracks if t.deforming and len(t.triangles)]
+    frames = tracks[0].points.shape[0] if tracks else 0
+    s = np.linspace(0.0, 1.0, SOLID_SAMPLES)[:, None, None]
+    edges = [edges_of(t.triangles) for t in cloth]
+    for f in range(frames):
+        inside, deepest = 0, 0.0
+        for t, e in zip(cloth, edges):
+            x = t.points[f]
+            if not np.isfinite(x).all():
+                continue
+            pts = (x[e[:, 0]][None] * (1.0 - s) + x[e[:, 1]][None] * s).reshape(-1, 3)
+            for sol in solids:
+                m = sol.matrices[f]
+                a, b = m[:3, :3], m[3, :3]
+                try:
+                    local = np.linalg.solve(a.T, (pts - b).T).T  # world = local a + b
+                except np.linalg.LinAlgError:
+                    continue  # a degenerate transform: no volume
+                r = sol.size[f]
+                if sol.kind == "sphere":
+                    scale = float(np.linalg.svd(a, compute_uv=False).min())
+                    d = (r - np.linalg.norm(local, axis=1)) * scale
+                else:
+                    axis = np.linalg.norm(a, axis=1)  # row i: local axis i in world
+                    d = ((r - np.abs(local)) * axis).min(axis=1)
+                deep = d > tolerance
+                inside += int(deep.sum())
+                if deep.any():
+                    deepest = max(deepest, float(d.max()))
+        out["inside"].append(inside)
+        out["depth"].append(deepest)
     return out
