@@ -710,6 +710,61 @@ def test_cloth_stays_outside_a_curved_sphere(solver_name, spin, cells):
     assert float(ball.signed_distance(p, st.t).min()) == pytest.approx(0.005 + pad, abs=2e-4)
 
 
+def test_obstacle_checker_counts_edge_points_inside_and_the_clearance():
+    """`ObstacleChecker` (`Scene.run`'s ``check_intersections``): an edge across a unit sphere
+    0.5 m from its centre has its middle sample 0.5 m deep and the samples within the sphere
+    inside; an edge through a box mesh obstacle counts once; the edge from a pinned vertex under
+    the plane has its first sample inside it; the least clearance is a free vertex's (the
+    pinned one is left out)."""
+    from warp_cloth.collision.check import ObstacleChecker
+    from warp_cloth.collision.obstacles import MeshObstacle
+
+    x = np.array([[-1.0, 0.5, 0.0], [1.0, 0.5, 0.0],     # through the sphere (0.5 from its centre)
+                  [4.9, 0.0, -1.0], [4.9, 0.0, 1.0],     # through the box mesh at x = 5
+                  [9.0, -0.2, 0.0], [9.0, 3.0, 0.0]])    # a pinned vertex below the plane
+    edges = [[0, 1], [2, 3], [4, 5]]
+    free = np.array([True, True, True, True, False, True])
+    obs = [Sphere(1.0, (0.0, 0.0, 0.0)), MeshObstacle(_box(0.2, 0.2, 0.2), position=(5.0, 0.0, 0.0)),
+           Plane((0.0, 1.0, 0.0), (0.0, -0.1, 0.0))]
+    inside, depth, clear = ObstacleChecker(obs, edges, free)(x, 0.0)
+    # edge 0's samples at t = 0, 1/8, ..., 1: inside where |p| < 1
+    s = np.linspace(0, 1, 9)
+    p = np.stack([-1 + 2 * s, np.full(9, 0.5), np.zeros(9)], 1)
+    expect = int((np.linalg.norm(p, axis=1) < 1 - 1e-6).sum())
+    # + edge 1 through the box mesh + edge 2's first sample, 0.1 m under the plane
+    assert inside == expect + 1 + 1
+    assert depth == pytest.approx(0.5, abs=1e-9)
+    # the free vertices 2 and 3 lie 0.1 m above the plane (the others farther from everything);
+    # the pinned vertex 4, 0.1 m under it, is not counted (-0.1 if it were)
+    assert clear == pytest.approx(0.1, abs=1e-6)
+
+
+def test_run_reports_cloth_edges_inside_a_sphere_without_its_pad(monkeypatch):
+    """`Scene.run(check_intersections=True)`: the sheet settled on a 0.25 m sphere (8 cm cells)
+    has no edge point inside it and keeps 7.06 mm (the thickness and the pad) off it; with the
+    pad taken away the run reports the edges 1.3-1.5 mm inside it."""
+    import warp_cloth.collision.contact as contact_mod
+    from warp_cloth.mesh import TriMesh
+    from warp_cloth.model import ClothModel
+
+    def run():
+        mesh = TriMesh.grid(10, 10, size=0.8, plane="xz", origin=(-0.4, 0.3, -0.4), name="cloth")
+        model = ClothModel(mesh, density=0.2, stretch_stiffness=1000.0, damping=0.5)
+        stage = CollisionStage(model, [Sphere(0.25, (0.0, 0.0, 0.0))], thickness=0.005,
+                               friction=0.5, self_collision=False)
+        return Scene(model, make_solver("pd", model, collision=stage), fps=60, frames=40,
+                     name="pad").run(None, quiet=True, check_intersections=True)
+
+    st = run()
+    assert st.obstacle_frames == 0 and st.obstacle_depth == 0.0
+    assert st.min_clearance == pytest.approx(0.00706, abs=2e-4)
+    monkeypatch.setattr(contact_mod, "sphere_contact_pad", lambda *a: 0.0)
+    st = run()
+    assert st.obstacle_frames > 10 and 1.2e-3 < st.obstacle_depth < 1.7e-3
+    assert st.min_clearance == pytest.approx(0.005, abs=1e-4)
+    assert "cloth inside in" in st.summary()
+
+
 def test_sharp_features_are_the_edges_a_cloth_edge_can_cut():
     from warp_cloth.collision.features import sharp_features
     from warp_cloth.contact_scenes import asset_path, thin_parts_mesh

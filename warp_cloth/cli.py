@@ -11,7 +11,7 @@
 
 Bad options and values give a usage error (exit status 2), never a traceback. Exit statuses of
 ``run``: 0 done, 2 usage error, 3 diverged, 4 the output cannot be written (one-line message),
-5 the cloth passed through itself (``--check-intersections``), 130 interrupted (SIGINT, Ctrl-C), 143 terminated (SIGTERM); the file then holds the frames done.
+5 the cloth passed through itself or into an obstacle (``--check-intersections``), 130 interrupted (SIGINT, Ctrl-C), 143 terminated (SIGTERM); the file then holds the frames done.
 """
 
 from __future__ import annotations
@@ -230,8 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep the cloth from passing through itself (default: on in every "
                         "scene)")
     r.add_argument("--check-intersections", action="store_true",
-                   help="count the cloth's crossing edge-triangle pairs in every frame (warning "
-                        "per frame with any; exit status 5 if any)")
+                   help="count the cloth's crossing edge-triangle pairs in every frame, and its "
+                        "edges inside the obstacles (warning per frame with any; exit status 5 "
+                        "if any)")
     r.add_argument("--retries", type=_int_at_least(0, "an integer in [0, 8]"), default=None,
                    metavar="N",
                    help="a frame in which a self-collision step failed (the whole cloth returned "
@@ -406,9 +407,13 @@ def cmd_run(args, parser) -> int:
             print(ledger.report())
     if args.preview:
         _write_preview(out, args.device)
-    if stats.crossing_frames:
-        print(f"warp-cloth: the cloth passes through itself in {stats.crossing_frames} frames",
-              file=sys.stderr)
+    if stats.crossing_frames or stats.obstacle_frames:
+        if stats.crossing_frames:
+            print(f"warp-cloth: the cloth passes through itself in {stats.crossing_frames} frames",
+                  file=sys.stderr)
+        if stats.obstacle_frames:
+            print(f"warp-cloth: the cloth is inside an obstacle in {stats.obstacle_frames} frames "
+                  f"(deepest {1e3 * stats.obstacle_depth:.3f} mm)", file=sys.stderr)
         return EXIT_CROSSINGS
     return 0
 

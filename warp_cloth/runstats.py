@@ -43,6 +43,13 @@ class RunStats:
     # crossing (edge, triangle) pairs in one frame (None: not checked)
     crossing_frames: int | None = None
     max_crossings: int | None = None
+    # ... and against the obstacles (`collision.check.ObstacleChecker`; None: not checked or no
+    # obstacle): frames with a cloth edge point inside an analytic obstacle or a cloth edge
+    # through a mesh obstacle, the deepest such point (m), and the least distance of a free
+    # vertex to any obstacle over the frames (m; the promise: the thickness less 1e-4 m)
+    obstacle_frames: int | None = None
+    obstacle_depth: float | None = None
+    min_clearance: float | None = None
     #: frames in which a step stopped short of a tolerance (an unconverged solve, a limit out of
     #: sweeps: `Solver.frame_end`), each reported on stderr with the frame unless quiet
     short_frames: int = 0
@@ -67,6 +74,10 @@ class RunStats:
             + ("" if self.crossing_frames is None else
                f"; self-intersection: {self.crossing_frames} of {self.frames} frames "
                f"(at most {self.max_crossings} crossing pairs)")
+            + ("" if self.obstacle_frames is None else
+               f"; obstacles: cloth inside in {self.obstacle_frames} frames"
+               + (f" (deepest {1e3 * self.obstacle_depth:.3f} mm)" if self.obstacle_frames else "")
+               + f", least vertex clearance {1e3 * self.min_clearance:.3f} mm")
             + (f"; {self.short_frames} frames with a step short of its tolerance"
                if self.short_frames else "")
             + (f"; {self.retried_frames} frames run again with more steps"

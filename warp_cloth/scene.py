@@ -343,8 +343,12 @@ class Scene:
 
         ``check_intersections``: count every frame's crossing (edge, triangle) pairs of the cloth
         (`warp_cloth.collision.check.SelfIntersectionChecker`) into ``RunStats.crossing_frames``
-        and ``max_crossings``, with a warning on stderr for each frame that has any (unless
-        ``quiet``). Whatever the option, a frame in which self-collision had to return the
+        and ``max_crossings``, and the cloth against the obstacles
+        (`warp_cloth.collision.check.ObstacleChecker`: edge points inside an analytic obstacle,
+        edges through a mesh obstacle, the least clearance of a free vertex) into
+        ``obstacle_frames``, ``obstacle_depth`` and ``min_clearance``, with a warning on stderr
+        for each frame that has any crossing or point inside (unless ``quiet``). Whatever the
+        option, a frame in which self-collision had to return the
         whole cloth to its start, or dropped contacts for want of room, is reported on stderr
         (unless ``quiet``); room then grows, the frame graph is recorded again, and the frame
         runs again with more steps (``retries``).
@@ -403,6 +407,13 @@ class Scene:
 
             checker = SelfIntersectionChecker(model.mesh.triangles, model.mesh.edges,
                                               model.num_vertices, device=model.device)
+        ob_checker = None
+        ob_frames, ob_depth, clearance = 0, 0.0, float("inf")
+        if check_intersections and self.obstacles:
+            from .collision.check import ObstacleChecker
+
+            ob_checker = ObstacleChecker(self.obstacles, model.mesh.edges,
+                                         model.inverse_masses > 0, device=model.device)
         stage = getattr(solver, "collision", None)
         if stage is not None and hasattr(stage, "restart_span"):
             stage.restart_span()
@@ -535,6 +546,16 @@ class Scene:
                         if not quiet:
                             bar.note(f"warning: frame {frame}: the cloth passes through itself "
                                      f"({k} crossing edge-triangle pairs)")
+                if ob_checker is not None:
+                    k, deep, clear = ob_checker(state.positions(), frame / self.fps)
+                    clearance = min(clearance, clear)
+                    if k:
+                        ob_frames += 1
+                        ob_depth = max(ob_depth, deep)
+                        if not quiet:
+                            bar.note(f"warning: frame {frame}: the cloth is inside an obstacle "
+                                     f"({k} edge points or edges; deepest point "
+                                     f"{1e3 * deep:.3f} mm)")
                 x = state.x.numpy()
                 lo = min(lo, float(x[:, up].min()))
                 hi = max(hi, float(x[:, up].max()))
@@ -559,6 +580,9 @@ class Scene:
             out=os.fspath(out) if out is not None else None, extra=dict(solver.stats),
             crossing_frames=crossing_frames if checker is not None else None,
             max_crossings=max_crossings if checker is not None else None,
+            obstacle_frames=ob_frames if ob_checker is not None else None,
+            obstacle_depth=ob_depth if ob_checker is not None else None,
+            min_clearance=clearance if ob_checker is not None else None,
             short_frames=short_frames, retried_frames=retried_frames,
         )
 

@@ -16,7 +16,7 @@ from ..util import launch
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = ["mesh_edge_crossings", "self_crossings", "SelfIntersectionChecker", "folded_flat_edges",
-           "check_meshes", "edges_of", "solid_depths"]
+           "check_meshes", "edges_of", "solid_depths", "ObstacleChecker"]
 
 
 #: two triangles on an edge lie folded flat onto each other when the far vertex of one is within
@@ -403,3 +403,48 @@ def solid_depths(tracks, solids, tolerance: float = 1e-6) -> dict:
         out["inside"].append(inside)
         out["depth"].append(deepest)
     return out
+
+
+class ObstacleChecker:
+    """The cloth against its obstacles after a frame, on the host in float64 (`Scene.run`'s
+    ``check_intersections``): `SOLID_SAMPLES` points along every cloth edge against each
+    analytic obstacle (plane, sphere, box: a cloth edge between two vertices held outside can
+    still cut into a curved one) and every cloth edge against each mesh obstacle's surface
+    (`mesh_edge_crossings`: an edge through a thin part), and the least distance of a free
+    vertex to any obstacle. ``edges`` (E, 2); ``free``: a boolean mask of the vertices that
+    are not pinned (pins may be placed anywhere)."""
+
+    def __init__(self, obstacles, edges, free, tolerance: float = 1e-6, device="cpu"):
+        from .motion import KIND_MESH
+
+        self.analytic = [ob for ob in obstacles if ob.kind != KIND_MESH]
+        self.meshes = [ob for ob in obstacles if ob.kind == KIND_MESH]
+        self.edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        self.free = np.asarray(free, dtype=bool)
+        self.tolerance = float(tolerance)
+        self.device = device
+        self._s = np.linspace(0.0, 1.0, SOLID_SAMPLES)[:, None, None]
+
+    def __call__(self, positions, t: float):
+        """``(inside, depth, clearance)`` at world ``positions`` and time ``t``: edge points more
+        than the tolerance inside an analytic obstacle plus cloth edges through a mesh
+        obstacle's surface; the deepest of those points (m, 0 when none); the least signed
+        distance of a free vertex to any obstacle (m, inf without obstacles)."""
+        x = np.asarray(positions, dtype=np.float64)
+        e = self.edges
+        inside, depth, clear = 0, 0.0, float("inf")
+        if len(e) and self.analytic:
+            pts = (x[e[:, 0]][None] * (1.0 - self._s) + x[e[:, 1]][None] * self._s).reshape(-1, 3)
+            for ob in self.analytic:
+                d = ob.signed_distance(pts, t)
+                deep = d < -self.tolerance
+                inside += int(deep.sum())
+                if deep.any():
+                    depth = max(depth, float(-d.min()))
+        for ob in self.meshes:
+            inside += int(mesh_edge_crossings(ob, x, e, t, self.device).sum())
+        free = x[self.free]
+        if len(free):
+            for ob in self.analytic + self.meshes:
+                clear = min(clear, float(ob.signed_distance(free, t).min()))
+        return inside, depth, clear
