@@ -714,16 +714,17 @@ def test_obstacle_checker_counts_edge_points_inside_and_the_clearance():
     """`ObstacleChecker` (`Scene.run`'s ``check_intersections``): an edge across a unit sphere
     0.5 m from its centre has its middle sample 0.5 m deep and the samples within the sphere
     inside; an edge through a box mesh obstacle counts once; the edge from a pinned vertex under
-    the plane has its first sample inside it; the least clearance is a free vertex's (the
-    pinned one is left out)."""
+    the plane has its first sample inside it (an edge between two pins is not tested); the least
+    clearance is a free vertex's (the pinned ones are left out)."""
     from warp_cloth.collision.check import ObstacleChecker
     from warp_cloth.collision.obstacles import MeshObstacle
 
     x = np.array([[-1.0, 0.5, 0.0], [1.0, 0.5, 0.0],     # through the sphere (0.5 from its centre)
                   [4.9, 0.0, -1.0], [4.9, 0.0, 1.0],     # through the box mesh at x = 5
-                  [9.0, -0.2, 0.0], [9.0, 3.0, 0.0]])    # a pinned vertex below the plane
-    edges = [[0, 1], [2, 3], [4, 5]]
-    free = np.array([True, True, True, True, False, True])
+                  [9.0, -0.2, 0.0], [9.0, 3.0, 0.0],     # a pinned vertex below the plane
+                  [9.5, -0.2, 0.0]])                     # ... and another: their edge is left out
+    edges = [[0, 1], [2, 3], [4, 5], [4, 6]]
+    free = np.array([True, True, True, True, False, True, False])
     obs = [Sphere(1.0, (0.0, 0.0, 0.0)), MeshObstacle(_box(0.2, 0.2, 0.2), position=(5.0, 0.0, 0.0)),
            Plane((0.0, 1.0, 0.0), (0.0, -0.1, 0.0))]
     inside, depth, clear = ObstacleChecker(obs, edges, free)(x, 0.0)

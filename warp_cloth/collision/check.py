@@ -412,15 +412,16 @@ class ObstacleChecker:
     still cut into a curved one) and every cloth edge against each mesh obstacle's surface
     (`mesh_edge_crossings`: an edge through a thin part), and the least distance of a free
     vertex to any obstacle. ``edges`` (E, 2); ``free``: a boolean mask of the vertices that
-    are not pinned (pins may be placed anywhere)."""
+    are not pinned (pins may be placed anywhere: an edge between two pins is not tested)."""
 
     def __init__(self, obstacles, edges, free, tolerance: float = 1e-6, device="cpu"):
         from .motion import KIND_MESH
 
         self.analytic = [ob for ob in obstacles if ob.kind != KIND_MESH]
         self.meshes = [ob for ob in obstacles if ob.kind == KIND_MESH]
-        self.edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
         self.free = np.asarray(free, dtype=bool)
+        e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        self.edges = e[self.free[e[:, 0]] | self.free[e[:, 1]]]
         self.tolerance = float(tolerance)
         self.device = device
         self._s = np.linspace(0.0, 1.0, SOLID_SAMPLES)[:, None, None]
