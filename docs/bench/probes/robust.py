@@ -1,7 +1,7 @@
 """Robustness sweep of cases not in `warp-cloth bench meshes`, checked per written frame in
 float64 with the bench's checkers: ``python docs/bench/probes/robust.py CASE SOLVER [FRAMES]``
 (CASE: fine highdrop rotbox sweep meshmove corner bigstep heavy pinch headon tube throw
-spinwrap fasttwist graded massratio squeeze stiff lowpoly spinbox tiltbox ribbon; env TH, FPS) prints one
+spinwrap fasttwist graded massratio squeeze stiff lowpoly spinbox tiltbox ribbon elevator; env TH, FPS) prints one
 JSON row. Measured 2026-12-07: docs/bench/selfcollision.md."""
 import sys, os, math, time, json, tempfile, numpy as np
 from warp_cloth.util import quiet_warp
@@ -149,6 +149,11 @@ elif case == "ribbon":  # a 2 x 60 cm ribbon (2 x 60 cells) hung by one end that
     pin_path = PinPath.from_function(
         lambda t, p0=p0: p0 + np.array([0.3 * math.sin(6.0 * t), -0.3 * min(t, 1.0), 0.2 * math.sin(4.0 * t)]),
         np.linspace(0, frames / fps + 0.1, 400))
+elif case == "elevator":  # a fold on a tilted floor that rises at 2 m/s from 0.3 s, then stops
+    mesh = jittered_grid(16, 0.6, 5, th, keep_column=0.0)
+    x0 = _fold(mesh.vertices, 0.0, 150.0, th)
+    path = KeyframePath([0.0, 0.3, 0.8, 3.0], [[0, 0, 0], [0, 0, 0], [0, 1.0, 0], [0, 1.0, 0]])
+    obs = [Plane((0.1, 1.0, 0.0), (0.0, -0.05, 0.0), motion=Motion(path=path))]
 elif case == "fasttwist":  # the twist at 2 pi rad/s, 25 x 25 vertices
     from warp_cloth.contact_scenes import twist
     tw = twist(solver=solver, res=24, rate=2 * math.pi, frames=frames)
