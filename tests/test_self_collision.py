@@ -197,6 +197,9 @@ def test_cli_check_measures_cloth_edges_inside_spheres_and_cubes(tmp_path, capsy
     assert rep["solids"] == ["/World/ball/geom (sphere)", "/World/box/geom (cube)"]
     assert rep["inside_solids"] == [0, 1, 3] and rep["frames_inside_solids"] == 2
     assert rep["inside_depth"] == pytest.approx([0.0, 0.1, 0.05], abs=1e-6)
+    # a stage whose spheres and cubes are not obstacles: --no-solids
+    rc, rep = _check_json([str(f), "--no-solids"], capsys)
+    assert rc == 0 and rep["solids"] == [] and rep["inside_solids"] == [0, 0, 0]
     # the same cloth without the solids: clean
     g = tmp_path / "none.usda"
     _stage(g, [("cloth", [[0, 1, 2]], [far, ball, box], (0, 0, 0))], times=[0, 1, 2])
