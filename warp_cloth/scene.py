@@ -546,8 +546,9 @@ class Scene:
                         if not quiet:
                             bar.note(f"warning: frame {frame}: the cloth passes through itself "
                                      f"({k} crossing edge-triangle pairs)")
+                x = state.x.numpy()
                 if ob_checker is not None:
-                    k, deep, clear = ob_checker(state.positions(), frame / self.fps)
+                    k, deep, clear = ob_checker(x, frame / self.fps)
                     clearance = min(clearance, clear)
                     if k:
                         ob_frames += 1
@@ -556,7 +557,6 @@ class Scene:
                             bar.note(f"warning: frame {frame}: the cloth is inside an obstacle "
                                      f"({k} edge points or edges; deepest point "
                                      f"{1e3 * deep:.3f} mm)")
-                x = state.x.numpy()
                 lo = min(lo, float(x[:, up].min()))
                 hi = max(hi, float(x[:, up].max()))
                 if writer is not None:

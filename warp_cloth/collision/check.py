@@ -356,8 +356,16 @@ def check_meshes(tracks, device="cpu") -> dict:
     return out
 
 
-#: points sampled along each edge (ends included) by `solid_depths`
+#: points sampled along each edge (ends included) by `solid_depths` and `ObstacleChecker`
 SOLID_SAMPLES = 9
+
+
+def edge_samples(x, edges) -> np.ndarray:
+    """`SOLID_SAMPLES` evenly spaced points along each of ``edges`` (E, 2) of the points ``x``
+    (ends included), as one (SOLID_SAMPLES * E, 3) array: a cloth edge between two vertices
+    held outside can still cut into a curved solid."""
+    s = np.linspace(0.0, 1.0, SOLID_SAMPLES)[:, None, None]
+    return (x[edges[:, 0]][None] * (1.0 - s) + x[edges[:, 1]][None] * s).reshape(-1, 3)
 
 
 def solid_depths(tracks, solids, tolerance: float = 1e-6) -> dict:
@@ -373,7 +381,6 @@ def solid_depths(tracks, solids, tolerance: float = 1e-6) -> dict:
     out = {"inside": [], "depth": []}
     cloth = [t for t in tracks if t.deforming and len(t.triangles)]
     frames = tracks[0].points.shape[0] if tracks else 0
-    s = np.linspace(0.0, 1.0, SOLID_SAMPLES)[:, None, None]
     edges = [edges_of(t.triangles) for t in cloth]
     for f in range(frames):
         inside, deepest = 0, 0.0
@@ -381,7 +388,7 @@ def solid_depths(tracks, solids, tolerance: float = 1e-6) -> dict:
             x = t.points[f]
             if not np.isfinite(x).all():
                 continue
-            pts = (x[e[:, 0]][None] * (1.0 - s) + x[e[:, 1]][None] * s).reshape(-1, 3)
+            pts = edge_samples(x, e)
             for sol in solids:
                 m = sol.matrices[f]
                 a, b = m[:3, :3], m[3, :3]
@@ -424,7 +431,6 @@ class ObstacleChecker:
         self.edges = e[self.free[e[:, 0]] | self.free[e[:, 1]]]
         self.tolerance = float(tolerance)
         self.device = device
-        self._s = np.linspace(0.0, 1.0, SOLID_SAMPLES)[:, None, None]
 
     def __call__(self, positions, t: float):
         """``(inside, depth, clearance)`` at world ``positions`` and time ``t``: edge points more
@@ -435,7 +441,7 @@ class ObstacleChecker:
         e = self.edges
         inside, depth, clear = 0, 0.0, float("inf")
         if len(e) and self.analytic:
-            pts = (x[e[:, 0]][None] * (1.0 - self._s) + x[e[:, 1]][None] * self._s).reshape(-1, 3)
+            pts = edge_samples(x, e)
             for ob in self.analytic:
                 d = ob.signed_distance(pts, t)
                 deep = d < -self.tolerance

@@ -211,9 +211,10 @@ class ObstacleContact:
         ordered = self.analytic + self.meshes  # pose k of `poses` belongs to ordered[k]
         # spheres whose curvature a cloth triangle between held vertices would cut into: their
         # radius padded for the vertex contact (`sphere_contact_pad`)
-        chord = cloth_chord(model.mesh.vertices, model.mesh.triangles)
+        #: m: the cloth's rest `cloth_chord` (also `FeatureContact`'s sphere criterion)
+        self.chord = cloth_chord(model.mesh.vertices, model.mesh.triangles)
         #: m added to each obstacle's radius for the vertex contact (`ordered` order; spheres)
-        self.pads = [sphere_contact_pad(ob, chord, self.thickness)
+        self.pads = [sphere_contact_pad(ob, self.chord, self.thickness)
                      if isinstance(ob, Sphere) else 0.0 for ob in ordered]
         self._data = wp.array(
             [ob.device_data(start_of[id(ob)], self.friction, self.restitution, pad)

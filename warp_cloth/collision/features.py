@@ -61,7 +61,7 @@ from .broadphase import ClothBroadPhase, cloth_bounds_kernel
 from .geometry import (CCD_MISS, ccd_edge_edge, ccd_vertex_triangle, d3, ee_impact, f3,
                        point_triangle_closest, segment_segment_closest, vt_impact)
 from .motion import KIND_BOX, KIND_SPHERE
-from .obstacles import cloth_chord, sphere_needs_features
+from .obstacles import sphere_needs_features
 from .record import (KIND_EDGE_EDGE, KIND_VERTEX_TRIANGLE, ContactRecord, entry_gap,
                      record_append, record_threads)
 
@@ -920,7 +920,7 @@ class FeatureContact:
         # contacts: their friction (`friction`) carries the sheet then. Before it had any, with
         # the stretch margin, the 10 x 10 sheet (0.8 m) on a 0.3 m sphere that spins (a rest
         # diagonal cuts 0.3 mm into it) was no longer carried round under PBD and PD
-        L0 = cloth_chord(model.mesh.vertices, model.mesh.triangles)
+        L0 = contact.chord
         areas = model.mesh.triangle_areas()
         #: the sphere centres kept as sharp vertices: the first ones (`respond_spheres_again`)
         self.num_spheres = 0
