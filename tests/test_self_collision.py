@@ -200,6 +200,14 @@ def test_cli_check_measures_cloth_edges_inside_spheres_and_cubes(tmp_path, capsy
     # a stage whose spheres and cubes are not obstacles: --no-solids
     rc, rep = _check_json([str(f), "--no-solids"], capsys)
     assert rc == 0 and rep["solids"] == [] and rep["inside_solids"] == [0, 0, 0]
+    # a sphere of negative radius: a usage error naming the prim (exit 2)
+    st = Usd.Stage.Open(str(f))
+    UsdGeom.Sphere(st.GetPrimAtPath("/World/ball/geom")).GetRadiusAttr().Set(-1.0)
+    st.GetRootLayer().Save()
+    capsys.readouterr()
+    assert cli.main(["check", str(f)]) == 2
+    err = capsys.readouterr().err
+    assert "/World/ball/geom" in err and "not a positive number" in err
     # the same cloth without the solids: clean
     g = tmp_path / "none.usda"
     _stage(g, [("cloth", [[0, 1, 2]], [far, ball, box], (0, 0, 0))], times=[0, 1, 2])
