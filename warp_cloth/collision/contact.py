@@ -67,14 +67,15 @@ before the general (BVH) one. Explicit Euler runs the far tests inside its own v
 allocated per step.
 
 **Cost** (``warp-cloth bench contact``: the 32x32 drape, each solver timed with and without the
-contact from the same draped state; CPU, graph replay, medians of 5 rounds). Implicit Euler and
+contact from the same draped state; CPU, graph replay, medians; 2026-12-07). Implicit Euler and
 projective dynamics, which take the contacts into their solve (`warp_cloth.solvers.
-contact_coupling`): +15.5-19 % and +9-11 % (analytic), +16 % and +21 % (960-triangle mesh).
-Position-based dynamics: +16-17 %, with the contact planes. Explicit Euler is the hard case: its
+contact_coupling`): +11-14 % and +7-8 % (analytic), +16-17 % and +12 % (960-triangle mesh).
+Position-based dynamics: +15-22 %, with the contact planes. Explicit Euler is the hard case: its
 substep is ~37 us for 1,089 vertices (~34 ns a vertex, all forces included), so every per-vertex
 test shows: one static sphere +18 % (the benchmark's floor row, a hand-written pass for that one
-sphere with the same result, +10-19 % over runs), mesh +41 %, spinning sphere +32 %, sphere and
-plane +24.5 %: a second obstacle's far test alone costs every vertex ~3 ns.
+sphere with the same result, +17 %), mesh +44-50 %, spinning sphere +41-43 % (its near pass and
+pose update every substep), sphere and plane +26 %: a second obstacle's far test alone costs
+every vertex ~3 ns.
 What Warp's CPU backend charges, measured: every variable of a kernel initialised for every
 thread (hence separate far and near passes, and the mesh's general path in a kernel of its own:
 its mere call site made the common case a fifth dearer), a struct passed by value copied at
