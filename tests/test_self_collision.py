@@ -725,6 +725,48 @@ def _weak_stack(**stack_args):
     return scene, crossings
 
 
+def test_impact_zone_union_runs_until_a_round_changes_nothing():
+    """Zones are merged by rounds of label propagation that go on until one changes no label
+    (a fixed number of rounds sufficed on the CPU, where a sweep sees its own writes, but not on
+    a GPU, whose threads may all read the labels from before the sweep). Chains of 2,000 entries
+    whose vertex ids are shuffled and whose entries come in shuffled or reversed order: every
+    chain ends as one zone, every label a root, the loop stopped after a round that changed
+    nothing (a further round with the same entries changes nothing), and a shuffled chain
+    needs more than one changing round (the loop is what merged it)."""
+    import warp as wp
+
+    from warp_cloth.collision.impact_zones import ImpactZones, zone_jump_kernel, zone_union_kernel
+    from warp_cloth.collision.record import make_record
+
+    n, N = 2001, 2000
+
+    class _M:
+        num_vertices = n
+        device = "cpu"
+
+    rec = make_record(N, "cpu")
+    z = ImpactZones(_M)
+    rng = np.random.default_rng(11)
+    most = 0
+    for trial in range(4):
+        ids = rng.permutation(n) if trial % 2 else np.arange(n)
+        order = rng.permutation(N) if trial < 2 else np.arange(N)[::-1]
+        vid = -np.ones((N, 4), np.int32)
+        vid[:, 0], vid[:, 1] = ids[:-1][order], ids[1:][order]
+        rec.vertex.assign(vid)
+        rec.count.assign(np.array([N], np.int32))
+        z.reset()
+        z.merge(rec, 1)
+        label = z.label.numpy()
+        assert len(np.unique(label)) == 1 and np.all(label[label] == label)
+        most = max(most, z.union_rounds)
+        changed = wp.zeros(1, dtype=int, device="cpu")
+        wp.launch(zone_union_kernel, 1, [rec, z.label, 1, changed], device="cpu")
+        wp.launch(zone_jump_kernel, n, [z.label, changed], device="cpu")
+        assert changed.numpy()[0] == 0
+    assert most >= 3
+
+
 def test_weak_projection_falls_back_on_impact_zones_not_crossings():
     """With one round of one Jacobi iteration the projection leaves contacts unresolved: the
     rigid impact zones take them (counted, without the whole-cloth return), and no frame has a

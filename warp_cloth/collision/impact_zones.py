@@ -4,7 +4,7 @@ The last resort of the self-collision response, for the contacts that the rounds
 (`warp_cloth.collision.self_collision`) could not separate. The vertices of the remaining
 contacts are merged into **zones**: two contacts sharing a vertex are in the same zone (union by
 label propagation: each entry lowers the labels of its vertices to their minimum, then pointer
-jumping; a fixed number of passes, no host read). Each zone then moves **rigidly** over the step:
+jumping, repeated until a round changes no label: a device-side loop, no host read in a graph). Each zone then moves **rigidly** over the step:
 its centre of mass moves as the zone's vertices did on average (linear momentum kept), and it
 turns by the rotation that keeps the zone's angular momentum about that centre
 (``theta = I^-1 sum m_i r_i x u_i``, with ``r_i`` the vertex's offset from the centre at the start
@@ -41,8 +41,13 @@ wp.set_module_options({"enable_backward": False})
 
 __all__ = ["ImpactZones"]
 
-#: label propagation passes per union (each pass: one sweep over the entries, one jump)
-UNION_PASSES = 4
+#: Before 2026-12-07 a union ran a fixed 4 propagation sweeps and 6 jumps. On the CPU, whose
+#: threads run one after another, a sweep sees its own writes and that always sufficed; on a
+#: GPU a sweep's threads may all read the labels from before it, and a chain of contacts then
+#: merges only a few links a sweep (a model of that order: a chain of 256 entries ended as 87
+#: zones), which moved one contact-connected group as several rigid bodies. Now the rounds go
+#: on until one changes no label (`zone_union_kernel` and `zone_jump_kernel` flag every change;
+#: labels only decrease, so the loop ends), usually two rounds on the CPU.
 
 
 @wp.kernel
@@ -60,9 +65,10 @@ def zone_mark_kernel(rec: ContactRecord, label: wp.array(dtype=int),
 
 
 @wp.kernel
-def zone_union_kernel(rec: ContactRecord, label: wp.array(dtype=int), num_threads: int):
+def zone_union_kernel(rec: ContactRecord, label: wp.array(dtype=int), num_threads: int,
+                      changed: wp.array(dtype=int)):
     """One propagation sweep: every entry's vertices (and their current roots) take the
-    smallest label among them."""
+    smallest label among them; ``changed[0] = 1`` if a label fell."""
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
@@ -75,14 +81,26 @@ def zone_union_kernel(rec: ContactRecord, label: wp.array(dtype=int), num_thread
         for j in range(4):
             v = vid[j]
             if v >= 0:
-                wp.atomic_min(label, label[v], lo)
-                wp.atomic_min(label, v, lo)
+                if wp.atomic_min(label, label[v], lo) > lo:
+                    changed[0] = 1
+                if wp.atomic_min(label, v, lo) > lo:
+                    changed[0] = 1
 
 
 @wp.kernel
-def zone_jump_kernel(label: wp.array(dtype=int)):
+def zone_jump_kernel(label: wp.array(dtype=int), changed: wp.array(dtype=int)):
+    """Pointer jumping: ``label[i] = label[label[i]]`` (never larger: ``label[j] <= j`` for
+    every ``j``); ``changed[0] = 1`` where a label was not yet a root."""
     i = wp.tid()
-    label[i] = label[label[i]]
+    r = label[label[i]]
+    if r != label[i]:
+        label[i] = r
+        changed[0] = 1
+
+
+@wp.kernel
+def zone_flag_kernel(changed: wp.array(dtype=int), value: int):
+    changed[0] = value
 
 
 @wp.kernel
@@ -266,6 +284,9 @@ class ImpactZones:
 
         self._iota = wp.array(np.arange(n, dtype=np.int32), dtype=int, device=d)
         self._one = wp.ones(1, dtype=int, device=d)
+        self._changed = wp.zeros(1, dtype=int, device=d)  # a union round changed a label
+        #: union rounds run by the last eager `merge` (not counted inside a recorded graph)
+        self.union_rounds = 0
         self.grounded = wp.zeros(n, dtype=int, device=d)
         # `hold_grounded`'s end positions after the obstacles' projection
         self._probe = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -279,12 +300,18 @@ class ImpactZones:
         """The record's entries merged into the zones."""
         d = self.device
         launch(zone_mark_kernel, threads, [rec, self.label, self.member, threads], device=d)
-        for _ in range(UNION_PASSES):
-            launch(zone_union_kernel, threads, [rec, self.label, threads], device=d)
-            launch(zone_jump_kernel, len(self.label), [self.label], device=d)
-        # roots settle after the last sweep: two more jumps make every label a root
-        for _ in range(2):
-            launch(zone_jump_kernel, len(self.label), [self.label], device=d)
+        # rounds of one sweep and one jump until a round changes nothing: every entry's
+        # vertices then share one label, and every label is a root
+        self.union_rounds = 0
+        launch(zone_flag_kernel, 1, [self._changed, 1], device=d)
+        wp.capture_while(self._changed, self._union_round, rec=rec, threads=threads)
+
+    def _union_round(self, rec, threads) -> None:
+        d = self.device
+        self.union_rounds += 1
+        launch(zone_flag_kernel, 1, [self._changed, 0], device=d)
+        launch(zone_union_kernel, threads, [rec, self.label, threads, self._changed], device=d)
+        launch(zone_jump_kernel, len(self.label), [self.label, self._changed], device=d)
 
     def move(self, rec: ContactRecord, x0, state, dt: float, counters, slot: int,
              steps=None) -> None:
