@@ -1025,3 +1025,47 @@ def test_steady_frame_of_the_moving_obstacles():
     path = Motion(path=KeyframePath([0.0, 1.0], [(0, 0, 0), (1, 0, 0)]))
     assert motion.steady_frame([Sphere(0.3, (0, 0, 0), motion=path)], g) is None
     assert motion.steady_frame([a, Box((0.1, 0.1, 0.1), (0, 0, 0), motion=slide)], g) is None
+
+
+def test_friction_guess_of_a_vertex_on_two_obstacles_does_not_depend_on_the_record_order():
+    """A vertex sliding into a floor-wall crease has an entry for each plane, and friction's
+    initial guess moves it for each. They run one obstacle at a time (a launch per obstacle,
+    in the obstacles' order): in one launch the second entry took its guess from where the
+    first left the vertex, so the result depended on which came first in the record (on the
+    CPU: reversed, the vertex ended 2.5 um elsewhere and one normal force differed by 0.009
+    N), and on a GPU the two threads could race on the vertex's position."""
+    th, dt = 0.005, 1 / 240
+    v = np.array([[0.002, 0.002, 0.0], [0.3, 0.3, 0.0], [0.3, 0.3, 0.3]])
+    model = ClothModel(TriMesh(v, np.array([[0, 1, 2]])), density=0.15, stretch_stiffness=100.0)
+    contact = ObstacleContact(model, [Plane(), Plane((1.0, 0.0, 0.0), (0.0, 0.0, 0.0))],
+                              thickness=th, friction=0.1)
+    solver = make_solver("implicit", model, collision=contact)
+    state = model.state()
+    solver.step(state, dt)
+    cc = solver._coupling
+    pred = (v + dt * np.array([[-0.2, -0.2, 1.5], [0, 0, 0], [0, 0, 0]])).astype(np.float32)
+    cc.detect(wp.array(v.astype(np.float32), dtype=wp.vec3), wp.array(pred, dtype=wp.vec3), dt,
+              state.time)
+    rec = cc.record
+    n = int(rec.count.numpy()[0])
+    assert n == 2 and set(rec.source.numpy()[:n]) == {0, 1}
+    assert list(rec.vertex.numpy()[:n, 0]) == [0, 0]
+    names = ["vertex", "weight", "normal", "offset", "ref", "friction", "restitution", "source",
+             "kind"]
+    saved = {k: getattr(rec, k).numpy()[:n].copy() for k in names}
+    lam0 = cc.lam.numpy().copy()
+
+    def guess(order):
+        for k in names:
+            a = getattr(rec, k).numpy().copy()
+            a[:n] = saved[k][order]
+            getattr(rec, k).assign(a)
+        cc.lam.assign(lam0)
+        x = wp.array(pred, dtype=wp.vec3)
+        cc.friction_guess(x, wp.zeros(3, dtype=wp.vec3), dt, wp.zeros(3, dtype=wp.vec3),
+                          project=True)
+        return x.numpy()[0], cc.lam.numpy().copy()
+
+    (xa, la), (xb, lb) = guess(np.arange(n)), guess(np.arange(n)[::-1])
+    assert np.array_equal(xa, xb) and np.array_equal(la, lb)
+    assert np.linalg.norm(xa - pred[0]) > 1e-4  # the guess did move the vertex

@@ -509,6 +509,7 @@ def newton_contact_kernel(
     packed: wp.array(dtype=int),
     onset: float,
     pen: wp.array(dtype=float),
+    b_cloth: wp.array(dtype=wp.vec3),
 ):
     """Active entries: their force ``-grad E_c`` into ``b``; their blocks into ``diag`` and
     ``vblock`` (``w_j^2 H``), the normal penalty's alone into ``nblock`` (for the residual);
@@ -550,9 +551,11 @@ def newton_contact_kernel(
             pack_entry(rec, e, inv_mass, pv, pw, pn, packed,
                        (Hn[0, 0] + Hn[1, 1] + Hn[2, 2]) / kappa_dt2)
         # the residual's block (`implicit.vertex_residual`): the normal penalty's, and the
-        # friction's too where the vertex sits on its static branch with the other forces
-        # assembled so far (the cloth's, without this entry's) inside the cone: its answer
-        # sticks, and its imbalance is measured by the position change its block allows
+        # friction's too where the vertex sits on its static branch with the cloth's forces
+        # (``b_cloth``: ``b`` before any contact entry's, a copy taken before this launch)
+        # inside the cone: its answer sticks, and its imbalance is measured by the position
+        # change its block allows. (It read ``b`` itself, which the other entries of the same
+        # vertex add to in this launch: their order on the CPU, a race on a GPU)
         Hr = Hn
         if on and rec.kind[e] == KIND_VERTEX_OBSTACLE and rec.friction[e] > 0.0:
             i = vid[0]
@@ -561,7 +564,8 @@ def newton_contact_kernel(
                 n = rec.normal[e]
                 d = x[i] - rec.ref[e]
                 u = d - wp.dot(d, n) * n
-                bt = b[i] - wp.dot(b[i], n) * n
+                bc = b_cloth[i]
+                bt = bc - wp.dot(bc, n) * n
                 if wp.length(u) < eps and wp.length(bt) <= rec.friction[e] * lam_i:
                     Hr = H
         if on:
@@ -587,20 +591,23 @@ def friction_reversal_kernel(
     num_threads: int,
     dx: wp.array(dtype=wp.vec3),
     count: wp.array(dtype=int),
+    src: int,
 ):
     """A Newton direction ``dx`` that carries a sliding vertex (``|u| >= eps``) back past its
     friction reference (``u . (u + T dx) < 0``: its friction force would reverse) has that
     vertex's tangential part replaced by ``-u``: the vertex lands at the centre of friction's
     static branch. The sliding branch has no stiffness along ``u``, so the linearised step
     sees the constant force ``mu lam`` pull on past the reference, by as much as the force
-    over the inertia block (module doc); counted in ``count[0]``. A vertex with entries of two
-    obstacles is landed by one of them (on the CPU the first in the record that finds it
-    reversing; on a GPU their threads race on ``dx[i]``): the direction only, which the line search then judges
+    over the inertia block (module doc); counted in ``count[0]``. The entries of obstacle ``src``
+    only (one launch per obstacle, in their order: a vertex with entries of two obstacles is
+    judged by each in turn, the second on the direction the first left, on a GPU as on the
+    CPU; one launch raced on ``dx[i]``): the direction only, which the line search then judges
     (and `ImplicitEuler` replaces by Newton's own where it raises F at every length)."""
     t = wp.tid()
     c = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, c, num_threads):
-        if rec.friction[e] <= 0.0 or rec.kind[e] != KIND_VERTEX_OBSTACLE:
+        if (rec.friction[e] <= 0.0 or rec.kind[e] != KIND_VERTEX_OBSTACLE
+                or rec.source[e] != src):
             continue
         i = rec.vertex[e][0]
         if inv_mass[i] <= 0.0 or lam[i * num_sources + rec.source[e]] <= 0.0:
@@ -610,9 +617,10 @@ def friction_reversal_kernel(
         u = d - wp.dot(d, n) * n
         if wp.length(u) < eps:
             continue
-        s = dx[i] - wp.dot(dx[i], n) * n
+        di = dx[i]
+        s = di - wp.dot(di, n) * n
         if wp.dot(u + s, u) < 0.0:
-            dx[i] = dx[i] - s - u
+            dx[i] = di - s - u
             wp.atomic_add(count, 0, 1)
 
 
@@ -755,9 +763,14 @@ def friction_guess_kernel(
     slide: wp.array(dtype=int),
     project: int,
     f_ext: wp.array(dtype=wp.vec3),
+    src: int,
 ):
     """Friction's normal force for the step, and the initial guess of a vertex that friction
-    can hold this step. The force: the larger of the last step's and ``m |g| / dt^2`` at the
+    can hold this step (the entries of obstacle ``src`` only: one launch per obstacle, in
+    their order, so a vertex pressing on two obstacles takes the second's guess from where
+    the first left it, on a GPU as on the CPU; in one launch a GPU's threads could both read
+    the vertex's start and add their corrections: modelled on the CPU, a vertex slid 1 cm in
+    a floor-wall crease ended 1 cm past its friction reference instead of on it). The force: the larger of the last step's and ``m |g| / dt^2`` at the
     prediction. With ``project``, a vertex arriving this step (no normal force from the last
     one) whose prediction lies inside its constraint starts on the constraint's plane: Newton
     then starts near the contact state instead of from a prediction up to ``|v| dt`` inside
@@ -775,10 +788,10 @@ def friction_guess_kernel(
     t = wp.tid()
     count = wp.min(rec.count[0], rec.vertex.shape[0])
     for e in range(t, count, num_threads):
-        if slide.shape[0] > 0:
+        if slide.shape[0] > 0 and src == 0:
             slide[e] = 0
         mu = rec.friction[e]
-        if rec.kind[e] != KIND_VERTEX_OBSTACLE:
+        if rec.kind[e] != KIND_VERTEX_OBSTACLE or rec.source[e] != src:
             continue
         i = rec.vertex[e][0]
         w = inv_mass[i]
@@ -1136,6 +1149,8 @@ class ContactCoupling:
         #: projective dynamics sets False, its local step writes lumped diagonal blocks)
         self.pairs_in_operator = True
         self.sources = max(1, len(stage.obstacles))
+        # `add_newton`'s copy of the cloth's forces before any contact entry's
+        self._b_cloth = wp.zeros(model.num_vertices, dtype=wp.vec3, device=self.device)
         # normal force per (vertex, obstacle) at the end of the last step: friction's bound
         self.lam = wp.zeros(model.num_vertices * self.sources, dtype=float, device=self.device)
         # how far below its target the solve left each (vertex, obstacle) pair at the end of
@@ -1249,11 +1264,12 @@ class ContactCoupling:
         self.active.zero_()
         self.self_active.zero_()
         mode = 1 if resting and first else (0 if first or not HOLD_FLIPS else 2)
+        wp.copy(self._b_cloth, b)  # the cloth's forces, before any contact entry's
         launch(newton_contact_kernel, self.threads,
                [self.record, x, self.model.inv_mass, *self._args(dt), b, diag, self.vblock,
                 self.nblock, self.active,
                 self.pairs_on if self.pairs_on is not None else self._no_flags,
-                mode if mode < 2 else 0, *self._no_pack, 0.0, self._no_gaps],
+                mode if mode < 2 else 0, *self._no_pack, 0.0, self._no_gaps, self._b_cloth],
                device=self.device)
         if self.pairs_on is not None:  # the active feature pairs, listed for `matvec_add`
             self.pairs_list_n.zero_()
@@ -1267,15 +1283,17 @@ class ContactCoupling:
                    [self.self_record, x, self.model.inv_mass, *self._args(dt)[:-1],
                     self.self_threads, b, diag, self.vblock, self.nblock, self.self_active,
                     self.self_on, mode, *self._self_pack, self.self_onset,
-                    self.self_pen if HOLD_FLIPS else self._no_gaps], device=self.device)
+                    self.self_pen if HOLD_FLIPS else self._no_gaps, self._b_cloth],
+                   device=self.device)
 
     def limit_reversals(self, x, dx, dt: float, count) -> None:
         """Newton's direction ``dx`` at ``x`` with every sliding vertex that it would carry
         back past its friction reference landed on that reference instead
         (`friction_reversal_kernel`); how many in ``count[0]``."""
-        launch(friction_reversal_kernel, self.threads,
-               [self.record, x, self.model.inv_mass, self.friction_velocity * dt, self.lam,
-                self.sources, self.threads, dx, count], device=self.device)
+        for src in range(self.sources):  # one obstacle at a time (the kernel's doc)
+            launch(friction_reversal_kernel, self.threads,
+                   [self.record, x, self.model.inv_mass, self.friction_velocity * dt, self.lam,
+                    self.sources, self.threads, dx, count, src], device=self.device)
 
     def mark_free(self, free) -> None:
         """``free[0]`` = 1 when this step's records (obstacles, self-contacts) hold no entry,
@@ -1379,12 +1397,13 @@ class ContactCoupling:
         (projective dynamics): also mark the entries whose vertex the other forces at the end
         of the last step drive past static friction (`slide`, read by `pd_local`). ``project``
         (Newton): a vertex arriving at its surface this step starts on its constraint's plane."""
-        launch(friction_guess_kernel, self.threads,
-               [self.record, x, self.model.inv_mass, self.lam, self.sources, dt * dt,
-                f_drive, self.threads, disp, self.f_other if classify else self._no_vec,
-                wp.vec3(*self.model.gravity), self.slide if classify else self._no_flags,
-                int(project), self._no_vec if f_ext is None else f_ext],
-               device=self.device)
+        for src in range(self.sources):  # one obstacle at a time (the kernel's doc)
+            launch(friction_guess_kernel, self.threads,
+                   [self.record, x, self.model.inv_mass, self.lam, self.sources, dt * dt,
+                    f_drive, self.threads, disp, self.f_other if classify else self._no_vec,
+                    wp.vec3(*self.model.gravity), self.slide if classify else self._no_flags,
+                    int(project), self._no_vec if f_ext is None else f_ext, src],
+                   device=self.device)
         self._classified = bool(classify)
 
     def energy(self, x, out, dt: float, slot: int = 0) -> None:
