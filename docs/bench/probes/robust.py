@@ -1,7 +1,9 @@
 """Robustness sweep of cases not in `warp-cloth bench meshes`, checked per written frame in
 float64 with the bench's checkers: ``python docs/bench/probes/robust.py CASE SOLVER [FRAMES]``
 (CASE: fine highdrop rotbox sweep meshmove corner bigstep heavy pinch headon tube throw
-spinwrap fasttwist graded massratio squeeze stiff lowpoly spinbox tiltbox ribbon elevator; env TH, FPS) prints one
+spinwrap fasttwist graded massratio squeeze stiff lowpoly spinbox tiltbox ribbon elevator disk blob bowl terrain paddle drag;
+env TH (thickness, m), FPS, FRIC (friction, default 0.4), SELF (0: self-collision off), OPTS (the
+solver's options as a Python dict literal, e.g. OPTS='{"contact_iterations": 60}')) prints one
 JSON row. Measured 2026-12-07: docs/bench/selfcollision.md."""
 import sys, os, math, time, json, tempfile, numpy as np
 from warp_cloth.util import quiet_warp
@@ -154,6 +156,75 @@ elif case == "elevator":  # a fold on a tilted floor that rises at 2 m/s from 0.
     x0 = _fold(mesh.vertices, 0.0, 150.0, th)
     path = KeyframePath([0.0, 0.3, 0.8, 3.0], [[0, 0, 0], [0, 0, 0], [0, 1.0, 0], [0, 1.0, 0]])
     obs = [Plane((0.1, 1.0, 0.0), (0.0, -0.05, 0.0), motion=Motion(path=path))]
+elif case == "disk":  # a round tablecloth (rings of 6 i vertices: valences 4-8) onto a square table
+    nr, R = 12, 0.45
+    V = [[0.0, 0.7, 0.0]]; rings = [[0]]
+    for i in range(1, nr + 1):
+        rings.append(list(range(len(V), len(V) + 6 * i)))
+        V += [[R * i / nr * math.cos(2 * math.pi * (j + 0.3 * (i % 2)) / (6 * i)), 0.7,
+               R * i / nr * math.sin(2 * math.pi * (j + 0.3 * (i % 2)) / (6 * i))] for j in range(6 * i)]
+    V = np.array(V); T = []
+    for i in range(1, nr + 1):  # triangulate ring i-1 to ring i by angle order
+        a, b = rings[i - 1], rings[i]; ia = ib = 0
+        ang = lambda k: math.atan2(V[k, 2], V[k, 0]) % (2 * math.pi)
+        if len(a) == 1:
+            T += [[0, b[(j + 1) % len(b)], b[j]] for j in range(len(b))]; continue
+        while ia < len(a) or ib < len(b):
+            a0, a1 = a[ia % len(a)], a[(ia + 1) % len(a)]; b0, b1 = b[ib % len(b)], b[(ib + 1) % len(b)]
+            ta = ang(a1) + (2 * math.pi if ia + 1 >= len(a) else 0); tb = ang(b1) + (2 * math.pi if ib + 1 >= len(b) else 0)
+            if ib >= len(b) or (ia < len(a) and ta < tb):
+                T.append([a0, a1, b0]); ia += 1
+            else:
+                T.append([a0, b1, b0]); ib += 1
+    mesh = TriMesh(V, np.array(T), name="cloth")
+    obs = [Box((0.2, 0.25, 0.2), (0.05, 0.25, 0.03), rotation=(0.0, math.sin(0.2), 0.0, math.cos(0.2))), Plane()]
+elif case == "blob":  # onto a lumpy, concave closed mesh (an icosphere, radii 0.13-0.27 m)
+    V, F = _icosphere(3, 1.0)
+    rng = np.random.default_rng(7); c = rng.normal(size=(6, 3))
+    r = 0.2 * (1 + 0.35 * np.tanh(sum(np.sin(3 * V @ ci + k) for k, ci in enumerate(c)) / 2))
+    mesh = jittered_grid(24, 1.0, 23, 0.75)
+    obs = [MeshObstacle(TriMesh(V * r[:, None], F, name="blob"), name="blob", position=(0, 0.3, 0)), Plane()]
+elif case == "bowl":  # into an open hemispherical bowl (two-sided, a thin rim), over its rim
+    nu, nv, r = 48, 12, 0.3
+    V = [[0.0, 0.05, 0.0]] + [[r * math.sin(b) * math.cos(a), 0.05 + r - r * math.cos(b), r * math.sin(b) * math.sin(a)]
+                             for b in np.linspace(math.pi / 2 / nv, math.pi / 2, nv) for a in np.arange(nu) * 2 * math.pi / nu]
+    T = [[0, 1 + (i + 1) % nu, 1 + i] for i in range(nu)]
+    for j in range(nv - 1):
+        for i in range(nu):
+            a0 = 1 + j * nu + i; a1 = 1 + j * nu + (i + 1) % nu
+            T += [[a0, a1, a1 + nu], [a0, a1 + nu, a0 + nu]]
+    mesh = jittered_grid(24, 0.9, 29, 0.6)
+    obs = [MeshObstacle(TriMesh(np.array(V), np.array(T), name="bowl"), name="bowl", position=(0.12, 0.0, 0.0)), Plane()]
+elif case == "terrain":  # onto an open bumpy heightfield (no floor), hanging over its border
+    g = np.linspace(-0.4, 0.4, 25)
+    V = np.array([[x, 0.05 * math.sin(9 * x) * math.cos(7 * z) + 0.04 * math.exp(-40 * (x * x + z * z)), z] for z in g for x in g])
+    T = []
+    for j in range(24):
+        for i in range(24):
+            a0 = j * 25 + i; T += [[a0, a0 + 25, a0 + 1], [a0 + 1, a0 + 25, a0 + 26]]
+    mesh = jittered_grid(24, 0.9, 31, 0.4)
+    obs = [MeshObstacle(TriMesh(V, np.array(T), name="terrain"), name="terrain", position=(0.25, 0.0, 0.1))]
+elif case == "paddle":  # an open 8 x 8 cell paddle (two-sided, no thickness) swung at ~4 m/s through a hanging sheet
+    g = np.linspace(-0.15, 0.15, 9)
+    V = np.array([[0.0, y, z] for z in g for y in g]); T = []
+    for j in range(8):
+        for i in range(8):
+            a0 = j * 9 + i; T += [[a0, a0 + 9, a0 + 1], [a0 + 1, a0 + 9, a0 + 10]]
+    mesh = TriMesh.grid(24, 24, size=1.0, plane="xy", origin=(-0.5, 0.2, 0.0), name="cloth")
+    pins = np.flatnonzero(np.isclose(mesh.vertices[:, 1], mesh.vertices[:, 1].max()))
+    tt = np.linspace(0, 2.0, 81)  # swings about the vertical axis through (0, 0.7, 0.25), a 0.35 m arm
+    qs = [[0, math.sin(0.5 * a), 0, math.cos(0.5 * a)] for a in 1.2 * np.sin(2.0 * np.pi * 0.5 * tt)]
+    offs = [[0.35 * math.sin(a), 0.0, -0.35 * (1 - math.cos(a))] for a in 1.2 * np.sin(2.0 * np.pi * 0.5 * tt)]
+    obs = [MeshObstacle(TriMesh(V, np.array(T), name="paddle"), name="paddle", position=(0.0, 0.7, 0.25),
+                        motion=Motion(path=KeyframePath(tt, np.array(offs), np.array(qs))))]
+elif case == "drag":  # a sheet pulled by two pinned corners across the thin-parts mesh at 1 m/s
+    from warp_cloth.model import PinPath
+    mesh = jittered_grid(20, 0.6, 37, 0.45)
+    v = mesh.vertices; pins = [int(np.argmin(v[:, 0] + v[:, 2])), int(np.argmin(v[:, 0] - v[:, 2]))]
+    mesh = TriMesh(v + np.array([-0.8, 0.0, 0.0]), np.asarray(mesh.triangles), name="cloth")
+    p0 = mesh.vertices[pins]
+    pin_path = PinPath.from_function(lambda t, p0=p0: p0 + np.array([min(t, 1.6), 0.0, 0.0]), np.linspace(0, frames / fps + 0.1, 200))
+    obs = [MeshObstacle(thin_parts_mesh(), name="thin_parts", position=(0, 0.0, 0)), Plane()]
 elif case == "fasttwist":  # the twist at 2 pi rad/s, 25 x 25 vertices
     from warp_cloth.contact_scenes import twist
     tw = twist(solver=solver, res=24, rate=2 * math.pi, frames=frames)
@@ -166,8 +237,8 @@ if case != "fasttwist":
                        velocity=vel if case == "headon" else None)
 if case != "fasttwist":
     if x0 is not None: model.initial_positions = x0
-    stage = CollisionStage(model, obs, thickness=th, friction=0.4, self_collision=True)
-    scene = Scene(model, make_solver(solver, model, collision=stage), fps=fps, frames=frames,
+    stage = CollisionStage(model, obs, thickness=th, friction=float(os.environ.get("FRIC", "0.4")), self_collision=os.environ.get("SELF", "1") == "1")
+    scene = Scene(model, make_solver(solver, model, collision=stage, **eval(os.environ.get("OPTS", "{}"))), fps=fps, frames=frames,
                   substeps=substeps, name=case)
 out = os.path.join(tempfile.mkdtemp(prefix="rb-"), f"{case}-{solver}.usd")
 t0 = time.perf_counter(); err = None; stats = None
@@ -198,7 +269,8 @@ for f, P in enumerate(pts):
             d = ob.signed_distance(P[free], t); clear = min(clear, float(d.min()))
             inside = max(inside, float(-ob.signed_distance(S, t).min()))
 row = dict(case=case, solver=solver, err=err, frames=len(pts), cross=cross, run_cross=None if stats is None else stats.crossing_frames,
-           nan=nan, clear_mm=round(clear * 1e3, 3), inside_mm=round(inside * 1e3, 3), through=through,
+           nan=nan, clear_mm=round(clear * 1e3, 3), run_clear_mm=None if stats is None else round(stats.min_clearance * 1e3, 3),
+           run_inside=None if stats is None else stats.obstacle_frames, inside_mm=round(inside * 1e3, 3), through=through,
            strain=None if stats is None else round(100 * stats.max_strain, 2), ms=None if stats is None else round(stats.ms_per_frame, 1),
            short=None if stats is None else stats.short_frames, retried=None if stats is None else stats.retried_frames)
 print(json.dumps(row), flush=True)
