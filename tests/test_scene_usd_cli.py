@@ -120,6 +120,10 @@ def test_cli_run_and_info(tmp_path, capsys):
     (["run", "hanging", "--device", "bogus"], "error"),
     (["run", "hanging", "--fps", "1e-6"], "substeps per frame"),
     (["run", "drape", "--restitution", "1.5"], "in [0, 1]"),
+    (["run", "drape", "--obstacle", "x.obj"], "--obstacle applies to the mesh scene"),
+    (["run", "mesh", "--obstacle", "/nonexistent/x.obj"], "'/nonexistent/x.obj' does not exist"),
+    (["run", "mesh", "--obstacle-scale", "2"], "--obstacle-scale applies with --obstacle"),
+    (["run", "mesh", "--obstacle", __file__], "expected an .obj, .usd"),
 ])
 def test_cli_usage_errors(argv, msg, capsys):
     with pytest.raises(SystemExit) as e:
@@ -237,3 +241,37 @@ def test_an_interrupt_while_recording_the_graph_is_not_taken_for_a_failed_record
         monkeypatch.setattr(scene_mod.wp, "ScopedCapture", _Interrupted)
         with pytest.raises(exc):
             hanging(res=4, frames=6, solver="pbd").run(None, quiet=True, energy=False)
+
+
+def test_cli_drops_the_mesh_scene_sheet_on_a_mesh_file_standing_on_the_floor(tmp_path):
+    """``warp-cloth run mesh --obstacle FILE``: the file's mesh, read in metres and turned Y-up
+    (here a Z-up stage in centimetres: a 40 x 40 x 30 cm box whose base sits at z = 50 cm),
+    stands still on the floor, centred over the origin, and the sheet starts 0.1 m above its
+    top; the obstacle is written to the output stage where it stood."""
+    src = tmp_path / "box.usda"
+    stage = Usd.Stage.CreateNew(str(src))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    m = UsdGeom.Mesh.Define(stage, "/box")
+    c = np.array([[x, y, z] for z in (50, 80) for y in (-20, 20) for x in (-20, 20)], float)
+    c[:, 0] += 100.0  # off-centre in the file
+    faces = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]]
+    m.CreatePointsAttr([tuple(p) for p in c])
+    m.CreateFaceVertexCountsAttr([4] * 6)
+    m.CreateFaceVertexIndicesAttr([i for f in faces for i in f])
+    stage.GetRootLayer().Save()
+    out = tmp_path / "m.usd"
+    rc = cli.main(["run", "mesh", "--obstacle", str(src), "--res", "6", "--frames", "3",
+                   "--out", str(out), "--quiet"])
+    assert rc == 0
+    from warp_cloth.usd import read_meshes
+
+    _, tracks = read_meshes(out)
+    rigid = [t for t in tracks if not t.deforming]
+    cloth = [t for t in tracks if t.deforming]
+    assert len(rigid) == 1 and len(cloth) == 1
+    p = rigid[0].points[0]
+    np.testing.assert_allclose(p.min(axis=0), [-0.2, 0.0, -0.2], atol=1e-6)
+    np.testing.assert_allclose(p.max(axis=0), [0.2, 0.3, 0.2], atol=1e-6)
+    np.testing.assert_allclose(rigid[0].points[-1], p, atol=1e-9)  # it stands still
+    np.testing.assert_allclose(cloth[0].points[0][:, 1], 0.4, atol=1e-6)

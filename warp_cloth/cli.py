@@ -218,6 +218,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="contact scenes: normal restitution mu_N in [0, 1]")
     r.add_argument("--thickness", type=_positive_float, default=None,
                    help="contact scenes: contact thickness in m")
+    r.add_argument("--obstacle", default=None, metavar="FILE",
+                   help="mesh scene: drop the sheet on this mesh (.obj, .usd, .usda, .usdc) "
+                        "instead of the moving torus; it stands still on the floor, centred, "
+                        "the sheet 0.1 m above its top")
+    r.add_argument("--obstacle-scale", type=_positive_float, default=None, metavar="S",
+                   help="with --obstacle: metres per file unit for an OBJ (default 1), a "
+                        "further factor for a USD mesh (already in metres)")
     r.add_argument("--save-interval", type=_nonneg_float, default=2.0, metavar="SECONDS",
                    help="wall time between saves of the output (default 2; 0: every frame); a "
                         "crash loses at most the frames since the last save")
@@ -347,6 +354,20 @@ def cmd_run(args, parser) -> int:
             parser.error(f"--{opt} applies to the contact scenes {'/'.join(CONTACT_SCENES)}, "
                          f"not {args.scene}")
         kw[opt] = val
+    if args.obstacle_scale is not None and args.obstacle is None:
+        parser.error("--obstacle-scale applies with --obstacle")
+    if args.obstacle is not None:
+        if args.scene != "mesh":
+            parser.error(f"--obstacle applies to the mesh scene, not {args.scene}")
+        from .collision.motion import KeyframePath
+        from .contact_scenes import load_obstacle_mesh
+
+        try:
+            tm, position, height = load_obstacle_mesh(args.obstacle, args.obstacle_scale or 1.0)
+        except ValueError as e:
+            parser.error(f"--obstacle: {e}")
+        kw.update(mesh_file=tm, scale=args.obstacle_scale or 1.0, position=position,
+                  height=height, path=KeyframePath([0.0], [[0.0, 0.0, 0.0]]))
     out = args.out or f"{args.scene}.usd"
     ext = os.path.splitext(out)[1].lower()
     if ext not in (".usd", ".usda", ".usdc"):

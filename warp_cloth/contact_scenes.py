@@ -32,6 +32,7 @@ from .model import DEFAULT_DENSITY, DEFAULT_STRETCH_STIFFNESS, ClothModel
 from .scenes import _finish, _grid_shape
 
 __all__ = ["drape", "table", "spin", "mesh", "thin", "fold", "twist", "stack", "thin_parts_mesh",
+           "load_obstacle_mesh",
            "sheet_model", "SCENE_BENDING", "SCENE_NEWTON_ITERATIONS",
            "asset_path"]
 
@@ -217,7 +218,9 @@ def mesh(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
          restitution: float = 0.0, height: float = 0.65, self_collision: bool = True,
          **model_args):
     """A sheet dropped on a triangle-mesh obstacle (default ``warp_cloth/assets/torus.obj``) that moves along
-    a keyframed ``path`` (default `torus_path`), over a floor if ``ground``."""
+    a keyframed ``path`` (default `torus_path`), over a floor if ``ground``. ``mesh_file``: an
+    ``.obj`` path or a `TriMesh` (`load_obstacle_mesh` reads any mesh file and places it on
+    the floor)."""
     model = sheet_model(height=height, **_cloth_defaults(model_args))
     ob = MeshObstacle(mesh_file or asset_path("torus.obj"), position=position, scale=scale,
                       motion=Motion(path=path if path is not None else torus_path()),
@@ -228,6 +231,39 @@ def mesh(*, solver: str = "explicit", solver_options: dict | None = None, fps: f
                           extra_obstacles=obstacles, strain_bound=strain_bound, name="mesh",
                           thickness=thickness, friction=friction, restitution=restitution,
                           self_collision=self_collision)
+
+
+def load_obstacle_mesh(path, scale: float = 1.0, gap: float = 0.1):
+    """A mesh file as the `mesh` scene's obstacle, standing still on the floor: ``(mesh,
+    position, height)`` for `mesh`'s ``mesh_file``, ``position`` and ``height`` (``warp-cloth
+    run mesh --obstacle FILE``). ``path``: an ``.obj`` (``scale``: metres per file unit) or a
+    ``.usd``/``.usda``/``.usdc`` (its first `UsdGeom.Mesh`, in metres by the stage's
+    ``metersPerUnit``, times ``scale``); a Z-up stage's mesh is turned Y-up, the scenes' up.
+    The mesh is centred over the origin with its lowest point on the floor (y = 0), and the
+    sheet starts ``gap`` m above its highest point. Raises ValueError naming the file when it
+    cannot be read or holds no usable mesh."""
+    path = os.fspath(path)
+    scale = float(scale)
+    if not (math.isfinite(scale) and scale > 0):
+        raise ValueError(f"obstacle scale must be a positive finite number, got {scale}")
+    if not os.path.isfile(path):
+        raise ValueError(f"obstacle mesh file {path!r} does not exist")
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".obj":
+        tm = TriMesh.from_obj(path)
+    elif ext in (".usd", ".usda", ".usdc", ".usdz"):
+        tm = TriMesh.from_usd(path)
+    else:
+        raise ValueError(f"obstacle mesh file {path!r}: expected an .obj, .usd, .usda or .usdc "
+                         f"file")
+    v = np.asarray(tm.vertices, dtype=np.float64)
+    if getattr(tm, "up_axis", "Y") == "Z":  # (x, y, z) Z-up -> (x, z, -y) Y-up
+        v = np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)
+        tm = TriMesh(v, np.asarray(tm.triangles), name=tm.name)
+    v = v * scale
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    position = (-0.5 * (lo[0] + hi[0]), -lo[1], -0.5 * (lo[2] + hi[2]))
+    return tm, position, float(hi[1] - lo[1]) + float(gap)
 
 
 def thin_parts_mesh(*, blade=(0.5, 0.25, 0.003), blade_cells=(50, 24), ring_radius=0.3,
