@@ -816,6 +816,16 @@ def test_a_spike_tip_is_a_sharp_feature():
     low = _cone(0.3, 0.02, 24)  # a 4 degree slope: a 3.4 cm edge over its tip dips 1 mm
     e, v = sharp_features(low.vertices, low.triangles, 0.034, 0.005)
     assert 24 not in set(v.tolist())
+    # a soft tip: half-angle 70 degrees, a 3.4 cm chord over it dips (C/2) cos(alpha) = 5.8 mm,
+    # past the 5 mm thickness but not 1.5 times it: the vertex is kept (a cloth triangle over
+    # it keeps the thickness from it), none of its edges
+    soft = _cone(0.3, 0.3 / np.tan(np.radians(70.0)), 48)
+    e, v = sharp_features(soft.vertices, soft.triangles, 0.034, 0.005)
+    assert 48 in set(v.tolist()) and not any(48 in p for p in e.tolist())
+    # ... judged with the cloth triangles' chord when that is longer than the edge
+    e, v = sharp_features(soft.vertices, soft.triangles, 0.02, 0.005, chord=0.034)
+    assert 48 in set(v.tolist())
+    assert 48 not in set(sharp_features(soft.vertices, soft.triangles, 0.02, 0.005)[1].tolist())
 
 
 def test_feature_response_rounds_go_on_until_every_entry_holds():
