@@ -767,6 +767,48 @@ def test_impact_zone_union_runs_until_a_round_changes_nothing():
     assert most >= 3
 
 
+def test_contacts_dropped_by_the_impact_zone_passes_are_counted():
+    """A record with room for 2 entries, two patches driven 20 cm through each other in one
+    step: the impact zones' detections drop entries too, and they go to the step's overflow
+    count (the frame's report then grows the record, and the runner may run the frame again).
+    Before, only the rounds' drops were counted: the passes merged the entries that fit, without
+    a word. The zones' counts are the step's distinct zones and vertices (at most the cloth's)."""
+    import warp as wp
+
+    from warp_cloth import ClothModel, TriMesh
+    from warp_cloth.collision.self_collision import STAT_KEYS, SelfCollision
+
+    a = TriMesh.grid(2, 2, size=1.0, plane="xz", origin=(0, 0.0, 0))
+    b = TriMesh.grid(2, 2, size=1.0, plane="xz", origin=(0.13, 0.1, 0.17))
+    v = np.vstack([a.vertices, b.vertices])
+    t = np.vstack([a.triangles, b.triangles + len(a.vertices)])
+    model = ClothModel(TriMesh(v, t), density=0.1, stretch_stiffness=100.0)
+    sc = SelfCollision(model, 0.005, capacity=2)
+    i_over = STAT_KEYS.index("self_overflow")
+    seen = {"before": None, "passes": 0}
+    fallback, zone_move = sc._fallback, sc._zone_move
+
+    def logged_fallback(*args, **kw):
+        seen["before"] = int(sc.counters.numpy()[i_over])
+        fallback(*args, **kw)
+
+    def logged_zone_move(*args, **kw):  # after a zone pass's detection
+        seen["passes"] += int(sc.record.overflow.numpy()[0])
+        zone_move(*args, **kw)
+
+    sc._fallback, sc._zone_move = logged_fallback, logged_zone_move
+    state = model.state()
+    x0 = wp.clone(state.x)
+    x1 = v.copy()
+    x1[len(a.vertices):, 1] -= 0.2
+    state.x.assign(x1.astype(np.float32))
+    sc.resolve(state, x0, 1 / 60)
+    c = dict(zip(STAT_KEYS, sc.counters.numpy().tolist()))
+    assert seen["before"] is not None and seen["passes"] > 0
+    assert c["self_overflow"] >= seen["before"] + seen["passes"]
+    assert 0 < c["self_zone_vertices"] <= len(v) and c["self_zones"] >= 1
+
+
 def test_weak_projection_falls_back_on_impact_zones_not_crossings():
     """With one round of one Jacobi iteration the projection leaves contacts unresolved: the
     rigid impact zones take them (counted, without the whole-cloth return), and no frame has a

@@ -57,6 +57,12 @@ class RunStats:
     #: self-collision returned the whole cloth to its start, or contacts were dropped for want
     #: of room: `Scene`'s ``retries``), each reported on stderr unless quiet
     retried_frames: int = 0
+    #: frames whose collision stage reported a failure that its last attempt kept (contacts
+    #: dropped for want of room, the whole cloth returned to its start, impact zones holding
+    #: most of it, feature contacts left violated, a contact at a pinned vertex: each reported
+    #: on stderr unless quiet; `CollisionStage.frame_end`), so that a quiet run (a sweep's, a
+    #: benchmark's) still says so
+    collision_frames: int = 0
     extra: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -82,5 +88,7 @@ class RunStats:
                if self.short_frames else "")
             + (f"; {self.retried_frames} frames run again with more steps"
                if self.retried_frames else "")
+            + (f"; {self.collision_frames} frames with a collision-stage warning"
+               if self.collision_frames else "")
             + (f"; wrote {self.out}" if self.out else "")
         )

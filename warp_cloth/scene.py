@@ -422,6 +422,7 @@ class Scene:
         # the frame's start, kept while self-collision (or contact) can fail a step (`retries`)
         snap = state.clone() if (self.retries and hasattr(stage, "plan")) else None
         retried_frames = 0
+        collision_frames = 0
         frozen = 0  # frames in a row whose impact zones held most of the cloth
         locked = 0  # of them, frames that froze run again with the most steps too
         eager_until = 0  # no graph recorded before this frame (after a retry)
@@ -472,6 +473,8 @@ class Scene:
                         # steps where a step of it failed (`_stage_frame_end`)
                         retried, msgs = self._stage_frame_end(stage, state, snap, meter, short0)
                         retried_frames += retried > 0
+                        collision_frames += any(kind == "warning" and msg is not None
+                                                for kind, msg, _ in msgs)
                         for kind, msg, regrown in msgs:
                             if not quiet and msg is not None:
                                 bar.note(f"{kind}: frame {frame}: {msg}")
@@ -584,6 +587,7 @@ class Scene:
             obstacle_depth=ob_depth if ob_checker is not None else None,
             min_clearance=clearance if ob_checker is not None else None,
             short_frames=short_frames, retried_frames=retried_frames,
+            collision_frames=collision_frames,
         )
 
 

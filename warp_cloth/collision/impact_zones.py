@@ -107,11 +107,18 @@ def zone_flag_kernel(changed: wp.array(dtype=int), value: int):
 def zone_clear_kernel(rec: ContactRecord, zmass: wp.array(dtype=float),
                       zc0: wp.array(dtype=wp.vec3), zc1: wp.array(dtype=wp.vec3),
                       zang: wp.array(dtype=wp.vec3), zinert: wp.array(dtype=wp.mat33),
-                      zpinned: wp.array(dtype=int), zsize: wp.array(dtype=int)):
-    """The per-zone sums cleared (one launch instead of seven; nothing if no new entry)."""
+                      zpinned: wp.array(dtype=int), zsize: wp.array(dtype=int),
+                      counters: wp.array(dtype=int), slot: int):
+    """The per-zone sums cleared (one launch instead of seven; nothing if no new entry), and
+    the zones' counts of this step (``counters[slot]``, ``counters[slot + 1]``): the zones
+    persist through a step's passes and each pass that moves them counts them all again
+    (`zone_move_kernel`), so the step's counts are its last moving pass's."""
     i = wp.tid()
     if rec.count[0] == 0:
         return
+    if i == 0:
+        counters[slot] = 0
+        counters[slot + 1] = 0
     zmass[i] = 0.0
     zc0[i] = wp.vec3(0.0)
     zc1[i] = wp.vec3(0.0)
@@ -317,13 +324,14 @@ class ImpactZones:
              steps=None) -> None:
         """Every zone moved rigidly (or held at its start if pinned), unless ``rec`` (the
         entries just merged) is empty; the path ``x0 -> state.x`` lasts ``steps[0]`` steps of
-        ``dt`` (a device array); ``counters[slot]`` += zones, ``counters[slot + 1]`` +=
-        free vertices moved."""
+        ``dt`` (a device array); ``counters[slot]`` = zones, ``counters[slot + 1]`` = free
+        vertices moved (the step's zones so far: they persist through its passes)."""
         m, d, n = self.model, self.device, len(self.label)
         if steps is None:
             steps = self._one
         launch(zone_clear_kernel, n, [rec, self.zmass, self.zc0, self.zc1, self.zang,
-                                      self.zinert, self.zpinned, self.zsize], device=d)
+                                      self.zinert, self.zpinned, self.zsize, counters, slot],
+               device=d)
         launch(zone_pinned_kernel, n, [rec, self.member, self.label, m.inv_mass, self.zpinned,
                                        self.zsize], device=d)
         launch(zone_sums_kernel, n, [self.member, self.label, x0, state.x, m.inv_mass,

@@ -982,11 +982,17 @@ def zone_begin_kernel(flags: wp.array(dtype=int), passes: int):
 
 
 @wp.kernel
-def zone_pass_kernel(rec: ContactRecord, flags: wp.array(dtype=int), passes: int):
+def zone_pass_kernel(rec: ContactRecord, flags: wp.array(dtype=int), passes: int,
+                     stats: wp.array(dtype=int)):
     """The impact zones' loop (`SelfCollision._fallback`, a `wp.capture_while` on ``flags[1]``;
     ``flags``: [zone passes run, another detection, this detection grows and moves the zones
     (a `wp.capture_if`)]). After a detection the loop goes on unless it found no path (a pass
-    that moved nothing leaves the next detection the same paths) or it was the last."""
+    that moved nothing leaves the next detection the same paths) or it was the last. The
+    detection's dropped entries go to the step's overflow count (as a round's do,
+    `round_end_kernel`): the frame's report grows the record and the runner may run the frame
+    again; uncounted, an overflowing pass merged only the entries that fit."""
+    stats[I_OVERFLOW] = stats[I_OVERFLOW] + rec.overflow[0]
+    rec.overflow[0] = 0
     if flags[2] == 0 or rec.count[0] == 0:
         flags[1] = 0
         return
@@ -2131,6 +2137,8 @@ class SelfCollision:
             launch(round_begin_kernel, m.num_vertices,
                    [state.x, self._x_round, self.record, self._flags, self._moved_round,
                     self._zone_incremental], device=d)
+        # the last round's overflow is counted (`round_end_kernel`); the passes count theirs
+        self.record.overflow.zero_()
         wp.capture_while(self._zone_flags[1:2], self._zone_pass, state=state, x_start=x_start,
                          dt=dt, steps=steps, gap=gap)
         launch(revert_kernel, self.threads,
@@ -2145,8 +2153,8 @@ class SelfCollision:
             self._zone_incremental.zero_()
         wp.capture_if(self._zone_flags[2:3], self._zone_move, state=state, x_start=x_start,
                       dt=dt, steps=steps)
-        launch(zone_pass_kernel, 1, [self.record, self._zone_flags, self.zone_passes],
-               device=self.device)
+        launch(zone_pass_kernel, 1, [self.record, self._zone_flags, self.zone_passes,
+                                     self.counters], device=self.device)
 
     def _zone_detect_incremental(self, x_start, x, gap):
         self._retest_unmarked(self._moved_round, x_start, x, gap)
