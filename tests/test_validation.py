@@ -217,3 +217,87 @@ def test_fuzz_cli_run_arguments(monkeypatch, tmp_path_factory, scene, opts, flag
         assert e.code == 2 and "error:" in err.getvalue(), (argv, err.getvalue())
     except Built:
         pass
+
+
+def _small():
+    return wc.ClothModel(TriMesh.grid(4, 4, plane="xz", origin=(-0.5, 1.0, -0.5)), pins=[0, 4])
+
+
+def _api_cases():
+    from warp_cloth.collision import CollisionStage, ObstacleContact, Sphere
+
+    m = _small()
+    other = wc.ClothModel(TriMesh.grid(8, 8, plane="xz", origin=(-0.5, 1.0, -0.5)), pins=[0, 8])
+    return [
+        # a limit built for another model: its arrays are another mesh's (the process ended in
+        # a heap corruption)
+        (lambda: wc.make_solver("explicit", m, corrections=[wc.StrainLimit(other, 0, 1.01)]),
+         ValueError, "StrainLimit was built for another model"),
+        (lambda: wc.make_solver("pd", m, delay=-1), ValueError, "pd: delay must be"),
+        (lambda: wc.make_solver("implicit", m, tolerance="1e-4"), TypeError,
+         "implicit: option 'tolerance' must be a number, got '1e-4'"),
+        (lambda: wc.make_solver("pbd", m, iterations=float("nan")), TypeError,
+         "pbd: option 'iterations' must be an integer"),
+        (lambda: wc.make_solver("implicit", m, line_search="no"), TypeError,
+         "option 'line_search' must be True or False"),
+        (lambda: wc.make_solver("implicit", m, newton_iterations=True), TypeError,
+         "option 'newton_iterations' must be an integer, got True"),
+        (lambda: wc.make_solver("pd", m, delay=2.5), TypeError, "option 'delay' must be an integer"),
+        (lambda: wc.make_solver("explicit", None), TypeError, "model must be a warp_cloth.ClothModel"),
+        (lambda: wc.Scene(m, wc.make_solver("implicit", m), fps=1e200), ValueError,
+         "gives a step of"),
+        (lambda: wc.Scene(m, wc.make_solver("implicit", m), fps=1e-40, substeps=1), ValueError,
+         "gives a step of 1e\\+40 s"),
+        (lambda: wc.Scene(m, wc.make_solver("explicit", m), substeps=10**9), ValueError,
+         "substeps must be at most"),
+        (lambda: wc.Scene(m, wc.make_solver("explicit", m), frames=True), TypeError,
+         "frames must be an integer"),
+        (lambda: wc.Scene(m, None), TypeError, "solver must be a warp_cloth solver"),
+        (lambda: wc.Scene(m, wc.make_solver("explicit", m), obstacles=5), TypeError,
+         "Scene: obstacles must be an obstacle or a list of them, got int"),
+        (lambda: Sphere(0.1, name=5), TypeError, "Sphere: name must be a string"),
+        (lambda: CollisionStage(None, [Sphere(0.1)]), TypeError,
+         "CollisionStage: model must be a warp_cloth.ClothModel, got NoneType"),
+        (lambda: CollisionStage(m, [Sphere(0.1), "floor"]), TypeError,
+         r"CollisionStage: obstacles\[1\] is a str, not an obstacle"),
+        (lambda: ObstacleContact(m, 5), TypeError, "ObstacleContact: obstacles must be"),
+        (lambda: wc.StrainLimit(None, 0, 1.01), TypeError, "StrainLimit: model must be"),
+        (lambda: wc.ClothModel(m.mesh, wind="strong"), TypeError, "wind must be a warp_cloth.Wind"),
+        (lambda: wc.ClothModel(m.mesh, stretch_stiffness=np.ones((len(m.mesh.edges), 1))),
+         ValueError, r"one per edge, shape \(56,\): got shape \(56, 1\)"),
+    ]
+
+
+@pytest.mark.parametrize("k", range(21))
+def test_api_input_errors_name_the_problem(k):
+    """Found by an audit of the public API with bad input (2026-12-07): each raised deep inside
+    numpy or Warp, crashed the process, was accepted silently, or failed only once the run had
+    opened its output."""
+    cases = _api_cases()
+    assert len(cases) == 21
+    make, exc, match = cases[k]
+    with pytest.raises(exc, match=match):
+        make()
+
+
+def test_obj_face_errors_name_file_and_line_and_a_path_must_be_a_path(tmp_path):
+    p = tmp_path / "oor.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n")
+    with pytest.raises(ValueError, match=r"oor.obj:4: face index 9 is out of range \(the file "
+                                         r"has 3 vertices\)"):
+        TriMesh.from_obj(p)
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 -7\n")
+    with pytest.raises(ValueError, match=r"oor.obj:4: face index -7 is out of range"):
+        TriMesh.from_obj(p)
+    p.write_bytes(b"v 0 0 0\nv 1 0 0\nv 0 1 0\n\x85\nf 1 2 3\n")  # a line of one NEL byte
+    assert len(TriMesh.from_obj(p).triangles) == 1
+    with pytest.raises(TypeError, match="path must be a str or os.PathLike, got int"):
+        TriMesh.from_obj(0)  # (a file descriptor: 0 read standard input)
+
+
+def test_cli_res_beyond_memory_is_a_usage_error(tmp_path, capsys):
+    out = tmp_path / "big.usd"
+    with pytest.raises(SystemExit) as e:
+        cli.main(["run", "hanging", "--res", "1000000", "--frames", "2", "--out", str(out)])
+    assert e.value.code == 2 and "does not fit in this machine's memory" in capsys.readouterr().err
+    assert not out.exists()

@@ -319,6 +319,11 @@ def _corrections(args):
     return out
 
 
+def _one_line(e: BaseException) -> str:
+    lines = [ln.strip() for ln in str(e).strip().splitlines() if ln.strip()]
+    return lines[-1] if lines else type(e).__name__
+
+
 def cmd_run(args, parser) -> int:
     init_warp(verbose=args.verbose, device=args.device)
     from .errors import SimulationDiverged
@@ -380,6 +385,9 @@ def cmd_run(args, parser) -> int:
         scene = build_scene(args.scene, **kw)
     except (ValueError, TypeError, RuntimeError) as e:
         parser.error(str(e))
+    except MemoryError as e:  # (--res 1000000: 7 TiB of vertices)
+        parser.error(f"the scene does not fit in this machine's memory ({_one_line(e)}): "
+                     "lower --res")
     if args.retries is not None:
         scene.retries = args.retries
     ledger = None

@@ -474,7 +474,9 @@ class _JacobiLimit:
     inelastic = False
 
     def __init__(self, model, iterations, relaxation, tolerance=None, check_every=1):
-        self.model = model
+        from .util import check_model
+
+        self.model = check_model(model, type(self).__name__)
         self.device = model.device
         name = type(self).__name__
         self.iterations = _check_iterations(name, iterations)

@@ -444,9 +444,13 @@ class TriMesh:
             ValueError: naming the file and line of a malformed or undecodable line, an index out
                 of range, or a bad ``scale``/``up_axis``.
         """
+        if not isinstance(path, (str, os.PathLike)):
+            # (an int is a file descriptor to open(): 0 read standard input, and closed it)
+            raise TypeError(f"from_obj: path must be a str or os.PathLike, got "
+                            f"{type(path).__name__}")
         up_axis = check_up_axis(up_axis, f"{path}")
         scale = _positive_finite(scale, f"{path}: scale")
-        verts, tris = [], []
+        verts, tris, tri_lines = [], [], []
         name = name or os.path.splitext(os.path.basename(str(path)))[0]
         with open(path, "rb") as fh:
             for lineno, raw in enumerate(fh, 1):
@@ -457,7 +461,8 @@ class TriMesh:
                     line = raw.decode("latin-1")
                     hash_at = raw.find(b"#")
                     in_comment = 0 <= hash_at < e.start
-                    if not in_comment and line.split()[0] in ("v", "f"):
+                    words = line.split()  # (a line of only U+0085, a space, has no word)
+                    if not in_comment and words and words[0] in ("v", "f"):
                         raise ValueError(f"{path}:{lineno}: bytes that are not UTF-8 "
                                          f"({e.reason} at column {e.start + 1})") from None
                 parts = line.split("#", 1)[0].split()
@@ -480,7 +485,7 @@ class TriMesh:
                         if k == 0:
                             raise ValueError(f"{path}:{lineno}: OBJ indices start at 1, got 0")
                         j = k - 1 if k > 0 else len(verts) + k
-                        if not 0 <= j < len(verts) and abs(k) > 2**62:
+                        if j < 0 or abs(k) > 2**62:  # (a relative index before the first)
                             raise ValueError(f"{path}:{lineno}: face index {k} is out of range "
                                              f"(the file has {len(verts)} vertices so far)")
                         idx.append(j)
@@ -488,8 +493,13 @@ class TriMesh:
                         raise ValueError(f"{path}:{lineno}: face needs at least 3 vertices")
                     for q in range(1, len(idx) - 1):
                         tris.append((idx[0], idx[q], idx[q + 1]))
+                        tri_lines.append(lineno)
         if not verts:
             raise ValueError(f"{path}: no vertices found")
+        for (a, b, c), lineno in zip(tris, tri_lines):  # forward references allowed till here
+            if max(a, b, c) >= len(verts):
+                raise ValueError(f"{path}:{lineno}: face index {max(a, b, c) + 1} is out of "
+                                 f"range (the file has {len(verts)} vertices)")
         v = np.asarray(verts, dtype=np.float64) * scale
         mesh = cls(v, np.asarray(tris, dtype=np.int64).reshape(-1, 3), name=name, up_axis=up_axis)
         if weld is False or weld is None:

@@ -264,8 +264,8 @@ class ClothModel:
         if ks_edges.ndim == 0:
             ks_edges = np.full(len(mesh.edges), _check_stiffness("stretch_stiffness", ks_edges))
         elif ks_edges.shape != (len(mesh.edges),):
-            raise ValueError(f"stretch_stiffness has {ks_edges.size} entries, the mesh has "
-                             f"{len(mesh.edges)} edges")
+            raise ValueError(f"stretch_stiffness must be a number or one per edge, shape "
+                             f"({len(mesh.edges)},): got shape {ks_edges.shape}")
         bad = np.flatnonzero(~(np.isfinite(ks_edges) & (ks_edges >= 0)))
         if len(bad):
             raise ValueError(f"stretch_stiffness of edge {int(bad[0])} {tuple(mesh.edges[bad[0]])} "
@@ -364,6 +364,8 @@ class ClothModel:
 
             cls = _bending.DihedralBending if bending == "dihedral" else _bending.QuadraticBending
             self.force_terms.append(cls(self, self.bend_stiffness))
+        if wind is not None and not hasattr(wind, "bind"):
+            raise TypeError(f"wind must be a warp_cloth.Wind or None, got {type(wind).__name__}")
         self.wind = wind
         if wind is not None:
             self.force_terms.append(wind.bind(self))

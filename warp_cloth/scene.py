@@ -10,6 +10,7 @@ cost on the CPU.
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import sys
 import time as _time
@@ -25,6 +26,8 @@ __all__ = ["Scene", "RunStats"]
 
 #: a frame needing more automatic substeps than this is refused (a user may still ask for more)
 MAX_SUBSTEPS = 100_000
+#: s: the shortest and longest solver step a scene takes (float32 holds dt^2 and 1 / dt^2)
+MIN_DT, MAX_DT = 1.0e-9, 1.0e3
 
 #: `Scene`'s ``retries``: a frame in which a self-collision step failed runs again with 2, then 4
 #: times the steps
@@ -217,16 +220,31 @@ class Scene:
     def __init__(self, model, solver, *, fps: float = 60.0, frames: int = 120, substeps=None,
                  obstacles=(), strain_bound: float = 10.0, capture: bool = True,
                  name: str = "scene", retries: int = DEFAULT_RETRIES):
+        if not hasattr(solver, "model") or not hasattr(solver, "step"):
+            raise TypeError(f"Scene(model, solver): solver must be a warp_cloth solver "
+                            f"(make_solver), got {type(solver).__name__}")
         if solver.model is not model:
             raise ValueError("the solver was built for a different model")
-        fps = float(fps)
+
+        def number(value, what, integer=False):
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+                raise TypeError(f"{what} must be {'an integer' if integer else 'a number'}, "
+                                f"got {value!r}")
+            if integer and not (math.isfinite(float(value)) and float(value).is_integer()):
+                raise ValueError(f"{what} must be a positive integer, got {value!r}")
+            return value
+
+        fps = float(number(fps, "fps"))
         if not (math.isfinite(fps) and fps > 0):
             raise ValueError(f"fps must be positive, got {fps}")
-        if int(frames) != frames or frames < 1:
+        if number(frames, "frames", True) < 1:
             raise ValueError(f"frames must be a positive integer, got {frames}")
-        if substeps is not None and (int(substeps) != substeps or substeps < 1):
+        if substeps is not None and number(substeps, "substeps", True) < 1:
             raise ValueError(f"substeps must be a positive integer, got {substeps}")
-        if not (strain_bound > 0):
+        if substeps is not None and substeps > MAX_SUBSTEPS:
+            # (10**9 substeps ran on for minutes: a hang, not a run)
+            raise ValueError(f"substeps must be at most {MAX_SUBSTEPS}, got {substeps}")
+        if not (number(strain_bound, "strain_bound") > 0):
             raise ValueError(f"strain_bound must be > 0, got {strain_bound}")
         # the obstacles first: a stage made here from them sets the substeps like any other
         drawn = _scene_obstacles(model, solver, obstacles)
@@ -253,6 +271,11 @@ class Scene:
         self.model, self.solver = model, solver
         self.fps, self.frames, self.substeps = fps, int(frames), int(substeps)
         self.dt = 1.0 / (fps * self.substeps)
+        if not (MIN_DT <= self.dt <= MAX_DT):
+            # float32 cannot hold dt^2 or 1 / dt^2 beyond these (fps = 1e200: a division by
+            # zero in the implicit, PBD and PD steps; fps = 1e-40: non-finite positions)
+            raise ValueError(f"fps {fps:g} with {self.substeps} substeps gives a step of "
+                             f"{self.dt:.3g} s, outside [{MIN_DT:g}, {MAX_DT:g}] s")
         self.obstacles = drawn
         self.strain_bound = float(strain_bound)
         self.capture = capture
@@ -626,14 +649,9 @@ def _replay(parts) -> None:
 def _scene_obstacles(model, solver, obstacles) -> list:
     """The obstacles to draw: the solver's collision stage's (made here from ``obstacles`` when
     the solver has none)."""
-    from .collision import Obstacle
+    from .util import obstacle_list
 
-    if isinstance(obstacles, Obstacle):
-        obstacles = [obstacles]
-    obstacles = list(obstacles or ())
-    for k, ob in enumerate(obstacles):
-        if not isinstance(ob, Obstacle):
-            raise ValueError(f"obstacles[{k}] is a {type(ob).__name__}, not an obstacle")
+    obstacles = obstacle_list(obstacles if obstacles is not None else (), "Scene")
     stage = getattr(solver, "collision", None)
     if stage is None:
         if obstacles:

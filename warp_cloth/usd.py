@@ -92,10 +92,12 @@ def _one_line(e: BaseException) -> str:
 def _output_error(path: str, e: BaseException | None = None) -> OutputError:
     err = getattr(e, "errno", None)
     try:
-        full = os.statvfs(os.path.dirname(os.path.abspath(path)) or ".").f_bavail == 0
+        # (a pseudo file system such as /proc reports no blocks at all: not a full disk)
+        st = os.statvfs(os.path.dirname(os.path.abspath(path)) or ".")
+        full = st.f_blocks > 0 and st.f_bavail == 0
     except OSError:
         full = False
-    if err == errno.ENOSPC or full:
+    if err == errno.ENOSPC or (full and err in (None, errno.EIO, errno.EDQUOT)):
         why = "the disk is full"
     elif isinstance(e, OSError) and e.strerror:
         why = e.strerror

@@ -160,9 +160,10 @@ class ObstacleContact:
                  restitution: float = DEFAULT_RESTITUTION, friction: float = DEFAULT_FRICTION,
                  ccd: bool = True, slack: float | None = None, cache_margin: float = 0.02,
                  candidate_radius: float | None = None, fuse: bool = True):
-        if isinstance(obstacles, Obstacle):
-            obstacles = [obstacles]
-        obstacles = list(obstacles)
+        from ..util import check_model, obstacle_list
+
+        check_model(model, "ObstacleContact")
+        obstacles = obstacle_list(obstacles, "ObstacleContact")
         if not obstacles:
             raise ValueError("ObstacleContact needs at least one obstacle")
         for k, ob in enumerate(obstacles):

@@ -75,6 +75,10 @@ class Obstacle:
         self.motion = motion
         self.friction = _check_coefficient("friction", friction)
         self.restitution = _check_coefficient("restitution", restitution, upper=1.0)
+        if name is not None and not isinstance(name, str):
+            # (an int name passed every check and broke the run's USD output after it opened)
+            raise TypeError(f"{type(self).__name__}: name must be a string or None, got "
+                            f"{type(name).__name__}")
         self.name = name or self.default_name
         self._usd = None
 
@@ -343,7 +347,8 @@ class MeshObstacle(Obstacle):
     """A rigid triangle mesh obstacle.
 
     Args:
-        mesh: a `warp_cloth.TriMesh`, a path to an ``.obj`` file, or ``(vertices, triangles)``.
+        mesh: a `warp_cloth.TriMesh`, a path to an ``.obj`` file or a USD stage (its first
+            mesh, `TriMesh.from_usd`), or ``(vertices, triangles)``.
             Its vertices are the local frame (times ``scale``); spin is about the local origin.
         position, rotation: rest pose of the local origin.
         scale: uniform scale (> 0) applied to the vertices.
@@ -363,7 +368,12 @@ class MeshObstacle(Obstacle):
         from ..mesh import TriMesh
 
         if isinstance(mesh, (str, os.PathLike)):
-            mesh = TriMesh.from_obj(mesh)
+            # a USD stage's first mesh (in metres, in the stage's frame: `TriMesh.from_usd`),
+            # else an OBJ (a stage was read as an OBJ: "no vertices found")
+            if os.path.splitext(os.fspath(mesh))[1].lower() in (".usd", ".usda", ".usdc", ".usdz"):
+                mesh = TriMesh.from_usd(mesh)
+            else:
+                mesh = TriMesh.from_obj(mesh)
         elif isinstance(mesh, tuple) and len(mesh) == 2:
             mesh = TriMesh(np.asarray(mesh[0], dtype=np.float64), np.asarray(mesh[1]),
                            name=name or self.default_name)

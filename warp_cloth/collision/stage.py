@@ -180,6 +180,9 @@ class CollisionStage:
                  self_broadphase: str = "bvh", self_in_solve: bool = True,
                  self_solve_margin: float | None = None,
                  self_motion: float = DEFAULT_SELF_MOTION, **contact_options):
+        from ..util import check_model
+
+        check_model(model, "CollisionStage")
         contact = None
         if isinstance(obstacles, ObstacleContact):
             if contact_options:
@@ -190,9 +193,10 @@ class CollisionStage:
                                  "model")
             contact = obstacles
         else:
-            if isinstance(obstacles, Obstacle):
-                obstacles = [obstacles]
-            obstacles = list(obstacles or ())
+            from ..util import obstacle_list
+
+            obstacles = obstacle_list(obstacles if obstacles is not None else (),
+                                      "CollisionStage")
             if obstacles:
                 contact = ObstacleContact(model, obstacles, **contact_options)
             elif not self_collision:

@@ -17,6 +17,10 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import math
+import numbers
+
+import numpy as np
 
 from .base import Solver, check_dt
 
@@ -45,8 +49,36 @@ def solver_class(name: str):
         raise ValueError(f"solver {name!r} is not available; choose one of {available()}") from None
 
 
+def _check_option_types(name: str, params, options) -> None:
+    """Each option of the type its default says (a bool where the default is a bool, an integer
+    where it is an int, a real number where it is a float; None passes where the solver may
+    take it): the solvers' own checks then compare numbers. Before, ``tolerance="1e-4"`` raised
+    "must be real number, not str", ``iterations=float("nan")`` "cannot convert float NaN to
+    integer", ``line_search="no"`` turned into True and ``newton_iterations=True`` into 1, none
+    naming the option."""
+    for key, value in options.items():
+        p = params.get(key)
+        if p is None or p.default is inspect.Parameter.empty or value is None:
+            continue
+        d = p.default
+        where = f"{name}: option {key!r}"
+        if isinstance(d, (bool, np.bool_)):
+            if not isinstance(value, (bool, np.bool_)):
+                raise TypeError(f"{where} must be True or False, got {value!r}")
+        elif isinstance(d, numbers.Integral):
+            ok = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+            if not ok and isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)):
+                ok = math.isfinite(float(value)) and float(value).is_integer()
+            if not ok:
+                raise TypeError(f"{where} must be an integer, got {value!r}")
+        elif isinstance(d, numbers.Real):
+            if not isinstance(value, numbers.Real) or isinstance(value, (bool, np.bool_)):
+                raise TypeError(f"{where} must be a number, got {value!r}")
+
+
 def make_solver(name: str, model, **options) -> Solver:
-    """Build the solver ``name`` on ``model``; unknown options raise `ValueError`."""
+    """Build the solver ``name`` on ``model``; unknown options raise `ValueError`, options of
+    the wrong type (by their defaults') `TypeError`, each naming the option."""
     cls = solver_class(name)
     params = inspect.signature(cls.__init__).parameters
     if not any(p.kind == p.VAR_KEYWORD for p in params.values()):
@@ -54,6 +86,12 @@ def make_solver(name: str, model, **options) -> Solver:
         if unknown:
             valid = sorted(k for k in params if k not in ("self", "model"))
             raise ValueError(f"solver {name!r} has no option(s) {unknown}; valid: {valid}")
+    from ..model import ClothModel
+
+    if not isinstance(model, ClothModel):
+        raise TypeError(f"make_solver({name!r}, model): model must be a warp_cloth.ClothModel, "
+                        f"got {type(model).__name__}")
+    _check_option_types(name, params, options)
     return cls(model, **options)
 
 

@@ -154,6 +154,15 @@ class Solver:
             return
         if not hasattr(c, "apply"):
             raise ValueError(f"a correction needs an apply(state, x_start, dt) method, got {c!r}")
+        owner = getattr(c, "model", None)
+        if owner is not None and owner is not self.model:
+            # its arrays are sized and indexed for its own model's vertices and edges: on
+            # another model it read and wrote out of bounds (a limit of an 8 x 8 sheet on a
+            # 2 x 2 one's solver ended the process in a heap corruption)
+            raise ValueError(f"{type(c).__name__} was built for another model (its "
+                             f"{owner.num_vertices} vertices) than this solver's "
+                             f"({self.model.num_vertices} vertices): build it with the "
+                             "solver's model")
         self.corrections.append(c)
         self.capturable = self.capturable and getattr(c, "capturable", True)
         self._need_start()

@@ -648,6 +648,10 @@ class ProjectiveDynamics(Solver):
             raise ValueError(f"pd: outer_rho must be in [0, 1) or None, got {outer_rho!r}")
         if isinstance(outer_delay, bool) or int(outer_delay) != outer_delay or outer_delay < 0:
             raise ValueError(f"pd: outer_delay must be an integer >= 0, got {outer_delay!r}")
+        if isinstance(delay, bool) or int(delay) != delay or delay < 0:
+            # (checked by the Chebyshev solver only at the first step, after the run had
+            # opened its output: a bad value left a stage of one frame behind)
+            raise ValueError(f"pd: delay must be an integer >= 0, got {delay!r}")
         if alpha is None:
             alpha = 1.0
         if not (0.0 < alpha <= 2.0):
