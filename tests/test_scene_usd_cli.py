@@ -267,9 +267,9 @@ def test_cli_drops_the_mesh_scene_sheet_on_a_mesh_file_standing_on_the_floor(tmp
     from warp_cloth.usd import read_meshes
 
     _, tracks = read_meshes(out)
-    rigid = [t for t in tracks if not t.deforming]
+    rigid = [t for t in tracks if not t.deforming and "ground" not in t.path]
     cloth = [t for t in tracks if t.deforming]
-    assert len(rigid) == 1 and len(cloth) == 1
+    assert len(rigid) == 1 and len(cloth) == 1 and "box" in rigid[0].path
     p = rigid[0].points[0]
     np.testing.assert_allclose(p.min(axis=0), [-0.2, 0.0, -0.2], atol=1e-6)
     np.testing.assert_allclose(p.max(axis=0), [0.2, 0.3, 0.2], atol=1e-6)

@@ -446,7 +446,7 @@ class TriMesh:
         """
         if not isinstance(path, (str, os.PathLike)):
             # (an int is a file descriptor to open(): 0 read standard input, and closed it)
-            raise TypeError(f"from_obj: path must be a str or os.PathLike, got "
+            raise ValueError(f"from_obj: path must be a str or os.PathLike, got "
                             f"{type(path).__name__}")
         up_axis = check_up_axis(up_axis, f"{path}")
         scale = _positive_finite(scale, f"{path}: scale")

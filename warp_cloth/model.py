@@ -365,7 +365,7 @@ class ClothModel:
             cls = _bending.DihedralBending if bending == "dihedral" else _bending.QuadraticBending
             self.force_terms.append(cls(self, self.bend_stiffness))
         if wind is not None and not hasattr(wind, "bind"):
-            raise TypeError(f"wind must be a warp_cloth.Wind or None, got {type(wind).__name__}")
+            raise ValueError(f"wind must be a warp_cloth.Wind or None, got {type(wind).__name__}")
         self.wind = wind
         if wind is not None:
             self.force_terms.append(wind.bind(self))

@@ -221,14 +221,14 @@ class Scene:
                  obstacles=(), strain_bound: float = 10.0, capture: bool = True,
                  name: str = "scene", retries: int = DEFAULT_RETRIES):
         if not hasattr(solver, "model") or not hasattr(solver, "step"):
-            raise TypeError(f"Scene(model, solver): solver must be a warp_cloth solver "
+            raise ValueError(f"Scene(model, solver): solver must be a warp_cloth solver "
                             f"(make_solver), got {type(solver).__name__}")
         if solver.model is not model:
             raise ValueError("the solver was built for a different model")
 
         def number(value, what, integer=False):
             if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-                raise TypeError(f"{what} must be {'an integer' if integer else 'a number'}, "
+                raise ValueError(f"{what} must be {'an integer' if integer else 'a number'}, "
                                 f"got {value!r}")
             if integer and not (math.isfinite(float(value)) and float(value).is_integer()):
                 raise ValueError(f"{what} must be a positive integer, got {value!r}")

@@ -188,20 +188,20 @@ def stride_threads(n: int, device, batch: int = 1) -> int:
 
 
 def check_model(model, who: str):
-    """``model`` if it is a `warp_cloth.ClothModel`, else a TypeError naming ``who`` (before:
+    """``model`` if it is a `warp_cloth.ClothModel`, else a ValueError naming ``who`` (before:
     None or a TriMesh failed later on a missing attribute, ``'NoneType' object has no
     attribute 'device'``)."""
     from .model import ClothModel
 
     if not isinstance(model, ClothModel):
-        raise TypeError(f"{who}: model must be a warp_cloth.ClothModel, got "
-                        f"{type(model).__name__}")
+        raise ValueError(f"{who}: model must be a warp_cloth.ClothModel, got "
+                         f"{type(model).__name__}")
     return model
 
 
 def obstacle_list(obstacles, who: str) -> list:
     """``obstacles`` (one obstacle or an iterable of them) as a list, each checked to be an
-    obstacle (`warp_cloth.collision.Obstacle`), else a TypeError naming ``who`` and the entry."""
+    obstacle (`warp_cloth.collision.Obstacle`), else a ValueError naming ``who`` and the entry."""
     from .collision.obstacles import Obstacle
 
     if isinstance(obstacles, Obstacle):
@@ -209,10 +209,10 @@ def obstacle_list(obstacles, who: str) -> list:
     try:
         out = list(obstacles)
     except TypeError:
-        raise TypeError(f"{who}: obstacles must be an obstacle or a list of them, got "
-                        f"{type(obstacles).__name__}") from None
+        raise ValueError(f"{who}: obstacles must be an obstacle or a list of them, got "
+                         f"{type(obstacles).__name__}") from None
     for k, ob in enumerate(out):
         if not isinstance(ob, Obstacle):
-            raise TypeError(f"{who}: obstacles[{k}] is a {type(ob).__name__}, not an obstacle "
-                            "(Plane, Sphere, Box, MeshObstacle)")
+            raise ValueError(f"{who}: obstacles[{k}] is a {type(ob).__name__}, not an obstacle "
+                             "(Plane, Sphere, Box, MeshObstacle)")
     return out

@@ -77,7 +77,7 @@ class Obstacle:
         self.restitution = _check_coefficient("restitution", restitution, upper=1.0)
         if name is not None and not isinstance(name, str):
             # (an int name passed every check and broke the run's USD output after it opened)
-            raise TypeError(f"{type(self).__name__}: name must be a string or None, got "
+            raise ValueError(f"{type(self).__name__}: name must be a string or None, got "
                             f"{type(name).__name__}")
         self.name = name or self.default_name
         self._usd = None

@@ -64,21 +64,21 @@ def _check_option_types(name: str, params, options) -> None:
         where = f"{name}: option {key!r}"
         if isinstance(d, (bool, np.bool_)):
             if not isinstance(value, (bool, np.bool_)):
-                raise TypeError(f"{where} must be True or False, got {value!r}")
+                raise ValueError(f"{where} must be True or False, got {value!r}")
         elif isinstance(d, numbers.Integral):
             ok = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
             if not ok and isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)):
                 ok = math.isfinite(float(value)) and float(value).is_integer()
             if not ok:
-                raise TypeError(f"{where} must be an integer, got {value!r}")
+                raise ValueError(f"{where} must be an integer, got {value!r}")
         elif isinstance(d, numbers.Real):
             if not isinstance(value, numbers.Real) or isinstance(value, (bool, np.bool_)):
-                raise TypeError(f"{where} must be a number, got {value!r}")
+                raise ValueError(f"{where} must be a number, got {value!r}")
 
 
 def make_solver(name: str, model, **options) -> Solver:
     """Build the solver ``name`` on ``model``; unknown options raise `ValueError`, options of
-    the wrong type (by their defaults') `TypeError`, each naming the option."""
+    the wrong type (by their defaults') `ValueError` too, each naming the option."""
     cls = solver_class(name)
     params = inspect.signature(cls.__init__).parameters
     if not any(p.kind == p.VAR_KEYWORD for p in params.values()):
@@ -89,7 +89,7 @@ def make_solver(name: str, model, **options) -> Solver:
     from ..model import ClothModel
 
     if not isinstance(model, ClothModel):
-        raise TypeError(f"make_solver({name!r}, model): model must be a warp_cloth.ClothModel, "
+        raise ValueError(f"make_solver({name!r}, model): model must be a warp_cloth.ClothModel, "
                         f"got {type(model).__name__}")
     _check_option_types(name, params, options)
     return cls(model, **options)
