@@ -1,0 +1,30 @@
+"""Write four lumpy closed meshes (icospheres of 1,280 triangles with a smooth random radial
+relief, 0.2 m mean radius) for ``warp-cloth run mesh --obstacle``:
+``python docs/bench/probes/lumpy_meshes.py DIR`` writes DIR/lumpy1.obj .. lumpy4.obj, then e.g.
+``warp-cloth run mesh --obstacle DIR/lumpy3.obj --solver explicit --frames 90
+--check-intersections`` and ``warp-cloth check OUT.usd``. Measured 2026-12-07:
+docs/bench/selfcollision.md (lumpy3, the roughest, defeats explicit Euler: not mended)."""
+import os
+import sys
+
+import numpy as np
+
+sys.argv += [] if len(sys.argv) > 1 else ["."]
+here = os.path.dirname(os.path.abspath(__file__))
+src = open(os.path.join(here, "robust.py")).read()
+exec(compile(src[src.index("def _icosphere"):src.index("case, solver = sys.argv[1]")], "robust", "exec"))
+out = sys.argv[1]
+os.makedirs(out, exist_ok=True)
+for seed in (1, 2, 3, 4):
+    V, F = _icosphere(3, 1.0)  # noqa: F821 (from robust.py)
+    rng = np.random.default_rng(seed)
+    c = rng.normal(size=(6, 3)) * (1 + seed % 2)
+    amp = [0.35, 0.5, 0.45, 0.6][seed - 1]
+    r = 0.2 * (1 + amp * np.tanh(sum(np.sin(3 * V @ ci + k) for k, ci in enumerate(c)) / 2))
+    path = os.path.join(out, f"lumpy{seed}.obj")
+    with open(path, "w") as f:
+        for v in V * r[:, None]:
+            f.write("v %.6f %.6f %.6f\n" % tuple(v))
+        for t in F:
+            f.write("f %d %d %d\n" % tuple(t + 1))
+    print(path)
