@@ -224,7 +224,8 @@ def _small():
 
 
 def _api_cases():
-    from warp_cloth.collision import CollisionStage, ObstacleContact, Sphere
+    from warp_cloth.collision import Box, CollisionStage, MeshObstacle, ObstacleContact, Sphere
+    from warp_cloth.model import PinPath
 
     m = _small()
     other = wc.ClothModel(TriMesh.grid(8, 8, plane="xz", origin=(-0.5, 1.0, -0.5)), pins=[0, 8])
@@ -263,18 +264,28 @@ def _api_cases():
         (lambda: ObstacleContact(m, 5), ValueError, "ObstacleContact: obstacles must be"),
         (lambda: wc.StrainLimit(None, 0, 1.01), ValueError, "StrainLimit: model must be"),
         (lambda: wc.ClothModel(m.mesh, wind="strong"), ValueError, "wind must be a warp_cloth.Wind"),
+        # values beyond what the device's float32 holds (they became inf at frame 1)
+        (lambda: wc.Wind(velocity=(1e39, 0, 0)), ValueError, "Wind.velocity must be within"),
+        (lambda: wc.Wind(drag_coefficient=1e39), ValueError, "Wind.drag_coefficient must be"),
+        (lambda: PinPath([0, 1], np.full((2, 2, 3), 1e39)), ValueError,
+         "PinPath: positions beyond the float32 range"),
+        (lambda: Box((1e39, 0.1, 0.1), (0, -0.5, 0)), ValueError,
+         r"half_extents \(1e\+39, 0.1, 0.1\) is beyond the float32 range"),
+        (lambda: CollisionStage(m, [Sphere(0.1)], thickness=1e39), ValueError,
+         r"thickness must be in \(0, 1e\+06\]"),
+        (lambda: MeshObstacle(m.mesh, scale=1e39), ValueError, "beyond the float32 range"),
         (lambda: wc.ClothModel(m.mesh, stretch_stiffness=np.ones((len(m.mesh.edges), 1))),
          ValueError, r"one per edge, shape \(56,\): got shape \(56, 1\)"),
     ]
 
 
-@pytest.mark.parametrize("k", range(21))
+@pytest.mark.parametrize("k", range(27))
 def test_api_input_errors_name_the_problem(k):
     """Found by an audit of the public API with bad input (2026-12-07): each raised deep inside
     numpy or Warp, crashed the process, was accepted silently, or failed only once the run had
     opened its output."""
     cases = _api_cases()
-    assert len(cases) == 21
+    assert len(cases) == 27
     make, exc, match = cases[k]
     with pytest.raises(exc, match=match):
         make()

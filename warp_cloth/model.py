@@ -67,6 +67,9 @@ class PinPath:
             )
         if not np.all(np.isfinite(self.times)) or not np.all(np.isfinite(self.positions)):
             raise ValueError("PinPath: times and positions must be finite")
+        if self.positions.size and np.abs(self.positions).max() > FLOAT32_MAX:
+            raise ValueError("PinPath: positions beyond the float32 range the simulation "
+                             "computes in")
         if k > 1 and np.any(np.diff(self.times) <= 0):
             i = int(np.argmax(np.diff(self.times) <= 0))
             raise ValueError(f"PinPath: times must increase strictly (key {i + 1})")

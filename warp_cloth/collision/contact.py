@@ -173,7 +173,7 @@ class ObstacleContact:
         self.model = model
         self.device = model.device
         self.obstacles = obstacles
-        self.thickness = _num("thickness", thickness, 0.0, lo_open=True)
+        self.thickness = _num("thickness", thickness, 0.0, 1.0e6, lo_open=True)
         self.restitution = _num("restitution", restitution, 0.0, 1.0)
         self.friction = _num("friction", friction, 0.0)
         self.slack = 0.1 * self.thickness if slack is None else _num("slack", slack, 0.0)

@@ -29,6 +29,9 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+#: largest finite float32 (the device arrays' type; as `warp_cloth.mesh.FLOAT32_MAX`)
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 __all__ = [
@@ -112,6 +115,10 @@ def check_vec3(name, value) -> np.ndarray:
     a = np.asarray(value, dtype=np.float64).reshape(-1)
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+    if np.abs(a).max() > FLOAT32_MAX:  # (the device's float32 would make it inf)
+        raise ValueError(f"{name} {tuple(float(c) for c in a)} is beyond the float32 range the "
+                         f"simulation "
+                         f"computes in (+-{FLOAT32_MAX:.3g})")
     return a
 
 

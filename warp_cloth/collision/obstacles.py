@@ -30,6 +30,7 @@ import os
 
 import numpy as np
 
+from .motion import FLOAT32_MAX
 from .motion import (
     KIND_BOX, KIND_MESH, KIND_PLANE, KIND_SPHERE, Motion, check_quat, check_vec3, quat_between,
     quat_rotate,
@@ -274,8 +275,9 @@ class Sphere(Obstacle):
     def __init__(self, radius: float, center=(0.0, 0.0, 0.0), *, rotation=(0.0, 0.0, 0.0, 1.0),
                  motion=None, friction=None, restitution=None, name=None):
         r = float(radius)
-        if not (math.isfinite(r) and r > 0):
-            raise ValueError(f"radius must be a positive finite number of metres, got {radius}")
+        if not (math.isfinite(r) and 0 < r <= FLOAT32_MAX):
+            raise ValueError(f"radius must be a positive finite number of metres (within "
+                             f"float32), got {radius}")
         self.radius = r
         super().__init__(center, rotation, motion, friction, restitution, name)
 
@@ -382,6 +384,10 @@ class MeshObstacle(Obstacle):
         scale = float(scale)
         if not (math.isfinite(scale) and scale > 0):
             raise ValueError(f"scale must be a positive finite number, got {scale}")
+        if scale * float(np.abs(np.asarray(mesh.vertices, dtype=np.float64)).max(initial=0.0)) \
+                > FLOAT32_MAX:
+            raise ValueError(f"scale {scale:g} puts the mesh's vertices beyond the float32 range "
+                             "the simulation computes in")
         auto_closed = len(mesh.boundary_edges) == 0
         if closed is None:
             closed = auto_closed

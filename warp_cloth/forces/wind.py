@@ -99,12 +99,14 @@ class Wind:
         u = np.asarray(self.velocity, dtype=np.float64).reshape(-1)
         if u.shape != (3,) or not np.all(np.isfinite(u)):
             raise ValueError(f"Wind.velocity must be 3 finite numbers, got {self.velocity}")
+        if np.abs(u).max() > 1.0e6:  # (1e39 m/s passed and became inf on the device)
+            raise ValueError(f"Wind.velocity must be within 1e6 m/s, got {self.velocity}")
         self.velocity = tuple(float(c) for c in u)
         for name in ("air_density", "drag_coefficient", "lift_coefficient", "gust_amplitude",
                      "gust_frequency"):
             val = float(getattr(self, name))
-            if not (math.isfinite(val) and val >= 0):
-                raise ValueError(f"Wind.{name} must be finite and >= 0, got {val}")
+            if not (math.isfinite(val) and 0 <= val <= 1.0e12):
+                raise ValueError(f"Wind.{name} must be finite, >= 0 and within 1e12, got {val}")
         if not (self.gust_wavelength > 0 and math.isfinite(self.gust_wavelength)):
             raise ValueError(f"Wind.gust_wavelength must be > 0, got {self.gust_wavelength}")
 
