@@ -319,11 +319,6 @@ def _corrections(args):
     return out
 
 
-def _one_line(e: BaseException) -> str:
-    lines = [ln.strip() for ln in str(e).strip().splitlines() if ln.strip()]
-    return lines[-1] if lines else type(e).__name__
-
-
 def cmd_run(args, parser) -> int:
     init_warp(verbose=args.verbose, device=args.device)
     from .errors import SimulationDiverged
@@ -386,6 +381,8 @@ def cmd_run(args, parser) -> int:
     except (ValueError, TypeError, RuntimeError) as e:
         parser.error(str(e))
     except MemoryError as e:  # (--res 1000000: 7 TiB of vertices)
+        from .usd import _one_line
+
         parser.error(f"the scene does not fit in this machine's memory ({_one_line(e)}): "
                      "lower --res")
     if args.retries is not None:
