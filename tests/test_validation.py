@@ -312,3 +312,21 @@ def test_cli_res_beyond_memory_is_a_usage_error(tmp_path, capsys):
         cli.main(["run", "hanging", "--res", "1000000", "--frames", "2", "--out", str(out)])
     assert e.value.code == 2 and "does not fit in this machine's memory" in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(origin=(0, 0)), r"grid: origin must be 3 finite numbers, got \(0, 0\)"),
+    (dict(origin=None), "grid: origin must be 3 finite numbers, got None"),
+    (dict(plane=["xz"]), r"grid: plane must be one of"),
+    (dict(size=(1.0, 2.0, 3.0)), "grid: size must be a positive number or two"),
+    (dict(size="big"), "grid: size must be a positive number or two"),
+    (dict(nx=True), "grid: nx and ny must be positive integers"),
+    (dict(nx="4"), "grid: nx and ny must be positive integers"),
+])
+def test_grid_arguments_are_checked(kwargs, match):
+    """(Before: numpy's broadcast error for a 2-number origin, 'vertex 0 has a non-finite
+    coordinate' for None, 'unhashable type' for a list plane, True taken as 1.)"""
+    args = dict(nx=4, ny=4)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        TriMesh.grid(**args)

@@ -20,6 +20,7 @@ offending vertex, triangle or edge.
 from __future__ import annotations
 
 import math
+import numbers
 import os
 from dataclasses import dataclass, field
 
@@ -394,14 +395,31 @@ class TriMesh:
         ``u x w``. ``up_axis`` is the mesh's up axis (``"Y"``: a ``plane="xz"`` sheet is
         horizontal; ``"Z"``: a ``plane="xy"`` sheet is).
         """
+        for v in (nx, ny):
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real) or \
+                    not math.isfinite(float(v)):
+                raise ValueError(f"grid: nx and ny must be positive integers, got ({nx!r}, "
+                                 f"{ny!r})")
         if int(nx) != nx or int(ny) != ny or nx < 1 or ny < 1:
             raise ValueError(f"grid: nx and ny must be positive integers, got ({nx}, {ny})")
         nx, ny = int(nx), int(ny)
-        sx, sy = (size, size) if np.isscalar(size) else size
-        if not (sx > 0 and sy > 0 and math.isfinite(sx) and math.isfinite(sy)):
-            raise ValueError(f"grid: size must be positive and finite, got {size}")
+        try:
+            sz = np.asarray(size, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            sz = np.zeros(0)
+        if sz.size == 1:
+            sz = np.repeat(sz, 2)
+        if sz.shape != (2,) or not (np.all(sz > 0) and np.all(np.isfinite(sz))):
+            raise ValueError(f"grid: size must be a positive number or two, got {size!r}")
+        sx, sy = float(sz[0]), float(sz[1])
+        try:
+            org = np.asarray(origin, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            org = np.zeros(0)
+        if org.shape != (3,) or not np.all(np.isfinite(org)):
+            raise ValueError(f"grid: origin must be 3 finite numbers, got {origin!r}")
         axes = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
-        if plane not in axes:
+        if not isinstance(plane, str) or plane not in axes:
             raise ValueError(f"grid: plane must be one of {sorted(axes)}, got {plane!r}")
         if diagonals not in ("alternating", "fixed"):
             raise ValueError(f"grid: diagonals must be 'alternating' or 'fixed', got {diagonals!r}")
@@ -410,7 +428,7 @@ class TriMesh:
         verts = np.zeros(((nx + 1) * (ny + 1), 3))
         verts[:, au] = i.reshape(-1) * (sx / nx)
         verts[:, aw] = j.reshape(-1) * (sy / ny)
-        verts += np.asarray(origin, dtype=np.float64)
+        verts += org
         # counter-clockwise about u x w (for plane "xz" that is -y); cells in row-major order
         cj, ci = np.meshgrid(np.arange(ny, dtype=np.int64), np.arange(nx, dtype=np.int64),
                              indexing="ij")
