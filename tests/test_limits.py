@@ -235,7 +235,8 @@ def test_bad_arguments_raise():
                      ((0.9, math.nan), {}), ((0.9, 1.1), dict(iterations=0)),
                      ((0.9, 1.1), dict(relaxation=-1.0)), ((0.0, 0.0), {}), (("a", 1.0), {}),
                      ((0.9, 1.1), dict(check_every=0)), ((0.9, 1.1), dict(check_every=1.5)),
-                     ((0.9, 1.1), dict(check_every=True))):
+                     ((0.9, 1.1), dict(check_every=True)),
+                     ((0.0, 0.5), {}), ((1.05, 2.0), {})):  # the rest size outside its bounds
         with pytest.raises(ValueError):
             StrainLimit(model, *args, **kw)
         with pytest.raises(ValueError):

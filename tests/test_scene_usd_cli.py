@@ -124,6 +124,9 @@ def test_cli_run_and_info(tmp_path, capsys):
     (["run", "mesh", "--obstacle", "/nonexistent/x.obj"], "'/nonexistent/x.obj' does not exist"),
     (["run", "mesh", "--obstacle-scale", "2"], "--obstacle-scale applies with --obstacle"),
     (["run", "mesh", "--obstacle", __file__], "expected an .obj, .usd"),
+    # (accepted before: 1.3 -> 191 J in two frames; 1.47 -> 1,133 J)
+    (["run", "drape", "--thickness", "1"], "more than half the cloth's size"),
+    (["run", "hanging", "--strain-limit", "0,0.5"], "the rest size (1) must lie within"),
 ])
 def test_cli_usage_errors(argv, msg, capsys):
     with pytest.raises(SystemExit) as e:

@@ -449,6 +449,12 @@ def _check_bounds(name, lo, hi, lo_name, hi_name) -> tuple[float, float]:
         raise ValueError(f"{name}: need {lo_name} <= {hi_name}, got {lo_name}={lo}, {hi_name}={hi}")
     if hi <= 0.0:
         raise ValueError(f"{name}: {hi_name} must be > 0 (a zero-size element), got {hi}")
+    if not (lo <= 1.0 <= hi):
+        # the rest shape outside its own bounds: the limit then forces every element off its
+        # rest size each step against its springs (StrainLimit(model, 0, 0.5) under explicit
+        # Euler: 1.47 -> 1,133 J in two frames)
+        raise ValueError(f"{name}: the rest size (1) must lie within [{lo_name}, {hi_name}], got "
+                         f"[{lo}, {hi}]")
     return lo, hi
 
 
