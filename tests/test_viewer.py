@@ -250,3 +250,28 @@ def test_run_preview_writes_png(tmp_path):
                      "--preview", "--quiet"]) == 0
     img = np.asarray(Image.open(tmp_path / "h.png").convert("RGB"))
     assert img.shape == (480, 640, 3) and _cloth_mask(img).sum() > 0.05 * 640 * 480
+
+
+def test_render_of_a_part_with_a_singular_transform_is_a_usage_error(tmp_path, capsys):
+    """A mesh under a zero-scale transform has no shape: `warp-cloth render` says which prim and
+    writes nothing (a numpy LinAlgError traceback before)."""
+    from pxr import Gf, Usd, UsdGeom
+
+    from warp_cloth import cli
+
+    path = tmp_path / "zs.usda"
+    st = Usd.Stage.CreateNew(str(path))
+    xf = UsdGeom.Xform.Define(st, "/World/x")
+    xf.AddTransformOp().Set(Gf.Matrix4d(0.0))
+    for prim in ("/World/x/m", "/World/m2"):
+        m = UsdGeom.Mesh.Define(st, prim)
+        m.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+        m.CreateFaceVertexCountsAttr([3])
+        m.CreateFaceVertexIndicesAttr([0, 1, 2])
+    st.GetRootLayer().Save()
+    out = tmp_path / "zs.png"
+    with pytest.raises(SystemExit) as e:
+        cli.main(["render", str(path), "--out", str(out), "--size", "32x24"])
+    assert e.value.code == 2
+    assert "/World/x/m: its transform at frame index 0 is singular" in capsys.readouterr().err
+    assert not out.exists()

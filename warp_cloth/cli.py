@@ -625,14 +625,18 @@ def render_file(path, out, *, frames=None, size=(640, 480), camera=None, fov=40.
     shown = idx[-1:] if ext == ".png" else idx
     cam = Camera.framing(playback.bounds(frames=shown), playback.up_axis, az, el, dist, fov, w / h)
     r = Renderer(playback, w, h, cam, supersample=supersample, shadows=shadows, device=device)
+    try:
+        images = [r.render(i) for i in (idx[-1:] if ext == ".png" else idx)]
+    except ValueError as e:  # a part that cannot be drawn (nothing is written)
+        bad(str(e))
     if ext == ".png":
-        save_png(r.render(idx[-1]), out)
+        save_png(images[-1], out)
         return 1
     step = idx[1] - idx[0] if len(idx) > 1 else 1
     times = playback.times
     dt = (times[idx[1]] - times[idx[0]]) / playback.time_codes_per_second if len(idx) > 1 else 0
     fps = 1.0 / dt if dt > 0 else playback.fps / step
-    save_gif([r.render(i) for i in idx], out, fps)
+    save_gif(images, out, fps)
     return len(idx)
 
 

@@ -287,7 +287,11 @@ class Renderer:
                 self._update_normals(k)
                 mats[k] = np.eye(4)
             else:
-                mats[k] = np.linalg.inv(p.matrices[frame])
+                try:
+                    mats[k] = np.linalg.inv(p.matrices[frame])
+                except np.linalg.LinAlgError:  # (a traceback before)
+                    raise ValueError(f"{p.path}: its transform at frame index {frame} is "
+                                     "singular (a zero scale): no shape to draw") from None
         self._to_local.assign(wp.array(mats, dtype=wp.mat44, device=self.device))
 
     def render(self, frame: int = -1) -> np.ndarray:
