@@ -242,20 +242,17 @@ def load_obstacle_mesh(path, scale: float = 1.0, gap: float = 0.1):
     The mesh is centred over the origin with its lowest point on the floor (y = 0), and the
     sheet starts ``gap`` m above its highest point. Raises ValueError naming the file when it
     cannot be read or holds no usable mesh."""
+    from .mesh import USD_EXTENSIONS
+    from .util import positive_finite
+
     path = os.fspath(path)
-    scale = float(scale)
-    if not (math.isfinite(scale) and scale > 0):
-        raise ValueError(f"obstacle scale must be a positive finite number, got {scale}")
+    scale = positive_finite(scale, "obstacle scale")
     if not os.path.isfile(path):
         raise ValueError(f"obstacle mesh file {path!r} does not exist")
-    ext = os.path.splitext(path)[1].lower()
-    if ext == ".obj":
-        tm = TriMesh.from_obj(path)
-    elif ext in (".usd", ".usda", ".usdc", ".usdz"):
-        tm = TriMesh.from_usd(path)
-    else:
+    if os.path.splitext(path)[1].lower() not in (".obj",) + USD_EXTENSIONS:
         raise ValueError(f"obstacle mesh file {path!r}: expected an .obj, .usd, .usda or .usdc "
                          f"file")
+    tm = TriMesh.from_file(path)
     v = np.asarray(tm.vertices, dtype=np.float64)
     if getattr(tm, "up_axis", "Y") == "Z":  # (x, y, z) Z-up -> (x, z, -y) Y-up
         v = np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)

@@ -37,6 +37,8 @@ def _positive_finite(x, what: str) -> float:
     return positive_finite(x, what)
 
 
+#: the file extensions of USD stages (`TriMesh.from_file`)
+USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
 #: largest finite float32: the device arrays' type
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
@@ -444,6 +446,14 @@ class TriMesh:
                    up_axis=up_axis)
 
     # ------------------------------------------------------------------ loaders
+    @classmethod
+    def from_file(cls, path: str | os.PathLike) -> "TriMesh":
+        """A mesh file by its extension: a USD stage's first mesh (`USD_EXTENSIONS`,
+        `from_usd`), else an OBJ (`from_obj`)."""
+        if os.path.splitext(os.fspath(path))[1].lower() in USD_EXTENSIONS:
+            return cls.from_usd(path)
+        return cls.from_obj(path)
+
     @classmethod
     def from_obj(cls, path: str | os.PathLike, name: str | None = None, *, scale: float = 1.0,
                  up_axis: str = "Y", weld=False) -> "TriMesh":

@@ -10,7 +10,6 @@ cost on the CPU.
 from __future__ import annotations
 
 import math
-import numbers
 import os
 import sys
 import time as _time
@@ -21,6 +20,7 @@ import warp as wp
 from .diagnostics import Meter
 from .errors import SimulationDiverged
 from .runstats import Note, RunStats
+from .util import check_number
 
 __all__ = ["Scene", "RunStats"]
 
@@ -226,25 +226,17 @@ class Scene:
         if solver.model is not model:
             raise ValueError("the solver was built for a different model")
 
-        def number(value, what, integer=False):
-            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-                raise ValueError(f"{what} must be {'an integer' if integer else 'a number'}, "
-                                f"got {value!r}")
-            if integer and not (math.isfinite(float(value)) and float(value).is_integer()):
-                raise ValueError(f"{what} must be a positive integer, got {value!r}")
-            return value
-
-        fps = float(number(fps, "fps"))
+        fps = float(check_number(fps, "fps"))
         if not (math.isfinite(fps) and fps > 0):
             raise ValueError(f"fps must be positive, got {fps}")
-        if number(frames, "frames", True) < 1:
+        if check_number(frames, "frames", True) < 1:
             raise ValueError(f"frames must be a positive integer, got {frames}")
-        if substeps is not None and number(substeps, "substeps", True) < 1:
+        if substeps is not None and check_number(substeps, "substeps", True) < 1:
             raise ValueError(f"substeps must be a positive integer, got {substeps}")
         if substeps is not None and substeps > MAX_SUBSTEPS:
             # (10**9 substeps ran on for minutes: a hang, not a run)
             raise ValueError(f"substeps must be at most {MAX_SUBSTEPS}, got {substeps}")
-        if not (number(strain_bound, "strain_bound") > 0):
+        if not (check_number(strain_bound, "strain_bound") > 0):
             raise ValueError(f"strain_bound must be > 0, got {strain_bound}")
         # the obstacles first: a stage made here from them sets the substeps like any other
         drawn = _scene_obstacles(model, solver, obstacles)

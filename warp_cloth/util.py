@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import weakref
 
+import numpy as np
 import warp as wp
 
 
@@ -76,6 +78,19 @@ def positive_finite(value, what: str, unit: str = "") -> float:
         raise ValueError(f"{what} must be positive and finite{f' ({unit})' if unit else ''}, "
                          f"got {value!r}")
     return v
+
+
+def check_number(value, what: str, integer: bool = False):
+    """``value`` if it is a real number (``integer``: a whole one, an integral float allowed),
+    not a bool, else a `ValueError` naming ``what`` (`make_solver`'s options, `Scene`'s counts):
+    no ``int()`` or ``float()`` of a string, NaN or None that fails without the name."""
+    kind = "an integer" if integer else "a number"
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{what} must be {kind}, got {value!r}")
+    if integer and not isinstance(value, numbers.Integral) and not (
+            math.isfinite(float(value)) and float(value).is_integer()):
+        raise ValueError(f"{what} must be {kind}, got {value!r}")
+    return value
 
 
 def nonnegative_finite(value, what: str, unit: str = "") -> float:

@@ -370,12 +370,9 @@ class MeshObstacle(Obstacle):
         from ..mesh import TriMesh
 
         if isinstance(mesh, (str, os.PathLike)):
-            # a USD stage's first mesh (in metres, in the stage's frame: `TriMesh.from_usd`),
-            # else an OBJ (a stage was read as an OBJ: "no vertices found")
-            if os.path.splitext(os.fspath(mesh))[1].lower() in (".usd", ".usda", ".usdc", ".usdz"):
-                mesh = TriMesh.from_usd(mesh)
-            else:
-                mesh = TriMesh.from_obj(mesh)
+            # a USD stage's first mesh (in metres, in the stage's frame), else an OBJ (a stage
+            # was read as an OBJ: "no vertices found")
+            mesh = TriMesh.from_file(mesh)
         elif isinstance(mesh, tuple) and len(mesh) == 2:
             mesh = TriMesh(np.asarray(mesh[0], dtype=np.float64), np.asarray(mesh[1]),
                            name=name or self.default_name)

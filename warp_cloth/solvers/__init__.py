@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import importlib
 import inspect
-import math
 import numbers
 
 import numpy as np
@@ -56,6 +55,8 @@ def _check_option_types(name: str, params, options) -> None:
     "must be real number, not str", ``iterations=float("nan")`` "cannot convert float NaN to
     integer", ``line_search="no"`` turned into True and ``newton_iterations=True`` into 1, none
     naming the option."""
+    from ..util import check_number
+
     for key, value in options.items():
         p = params.get(key)
         if p is None or p.default is inspect.Parameter.empty or value is None:
@@ -65,15 +66,8 @@ def _check_option_types(name: str, params, options) -> None:
         if isinstance(d, (bool, np.bool_)):
             if not isinstance(value, (bool, np.bool_)):
                 raise ValueError(f"{where} must be True or False, got {value!r}")
-        elif isinstance(d, numbers.Integral):
-            ok = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
-            if not ok and isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)):
-                ok = math.isfinite(float(value)) and float(value).is_integer()
-            if not ok:
-                raise ValueError(f"{where} must be an integer, got {value!r}")
         elif isinstance(d, numbers.Real):
-            if not isinstance(value, numbers.Real) or isinstance(value, (bool, np.bool_)):
-                raise ValueError(f"{where} must be a number, got {value!r}")
+            check_number(value, where, integer=isinstance(d, numbers.Integral))
 
 
 def make_solver(name: str, model, **options) -> Solver:
@@ -86,11 +80,9 @@ def make_solver(name: str, model, **options) -> Solver:
         if unknown:
             valid = sorted(k for k in params if k not in ("self", "model"))
             raise ValueError(f"solver {name!r} has no option(s) {unknown}; valid: {valid}")
-    from ..model import ClothModel
+    from ..util import check_model
 
-    if not isinstance(model, ClothModel):
-        raise ValueError(f"make_solver({name!r}, model): model must be a warp_cloth.ClothModel, "
-                        f"got {type(model).__name__}")
+    check_model(model, f"make_solver({name!r}, model)")
     _check_option_types(name, params, options)
     return cls(model, **options)
 
