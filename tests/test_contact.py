@@ -592,6 +592,38 @@ def test_mesh_signed_distance_sign_in_the_plane_of_a_vertex_ring():
     assert np.abs(np.abs(sd) - np.abs(exact))[clear].max() < 5e-3
 
 
+def _tip_and_wall_mesh():
+    """One closed mesh of two parts: a box whose face x = 0 is a wall, and a sharp pyramid
+    (half-angle 4.8 degrees) whose tip (0.06, 0, 0) points at it across the gap."""
+    bv = np.array([[x, y, z] for x in (-0.2, 0.0) for y in (-0.2, 0.2) for z in (-0.2, 0.2)])
+    bt = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                   [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    pv = np.array([[0.06, 0.0, 0.0], [0.3, -0.02, -0.02], [0.3, 0.02, -0.02],
+                   [0.3, 0.02, 0.02], [0.3, -0.02, 0.02]])
+    pt = np.array([[0, 2, 1], [0, 3, 2], [0, 4, 3], [0, 1, 4], [1, 2, 3], [1, 3, 4]]) + 8
+    return TriMesh(np.concatenate([bv, pv]), np.concatenate([bt, pt]), name="tip_and_wall")
+
+
+def test_mesh_contact_sign_not_turned_by_a_nearly_as_close_part():
+    """A vertex 30 mm outside, between a sharp tip (29.99 mm) and a wall (30.01 mm), touches
+    nothing. Warp's closest-point query with its default tie tolerance (1e-3 of the average
+    edge, here 0.25 mm) added the wall's normal to the tip's in the sign's pseudo-normal and
+    called the point inside; the contact then put the vertex 5 mm inside the pyramid (on a
+    lumpy mesh it threw the draped cloth: 194 % strain, 1 -> 12 J)."""
+    ob = MeshObstacle(_tip_and_wall_mesh())
+    assert ob.closed
+    p = np.array([[0.03 + 1e-5, 0.0, 0.0]])
+    assert np.allclose(ob.signed_distance(p), [0.03 - 1e-5], atol=1e-6)  # the checker's sign
+    model, st = particles(p)  # at rest, no gravity
+    contact = ObstacleContact(model, [ob], friction=0.0)
+    solver = make_solver("explicit", model)
+    solver.add_correction(contact)
+    solver.step(st, 1e-4)
+    x = st.positions()
+    assert np.linalg.norm(x[0] - p[0]) < 1e-6, x[0] - p[0]
+    assert ob.signed_distance(x)[0] > 0.029
+
+
 @pytest.mark.parametrize("motion", [
     None,
     Motion(linear_velocity=(0.0, 0.8, 0.0)),

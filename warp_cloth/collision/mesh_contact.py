@@ -73,23 +73,58 @@ from .response import contact_outcome, outcome_in_frame
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
 
+#: `wp.mesh_query_point_sign_normal`'s tie tolerance (relative to the mesh's average edge
+#: length): faces whose closest points lie within it of the closest distance add their
+#: normals to the sign's pseudo-normal. Warp's default (1e-3) also lumps faces of another part
+#: of the surface whose distance is merely close, and their normals can turn the sign: on a
+#: lumpy mesh (edges 5 cm), a point 60.5 mm outside, 35 um nearer one edge than another
+#: region, was called inside, and the contact moved the vertex 65.5 mm through the mesh onto
+#: its far side (2026-12-07). A tie at one edge or vertex differs by rounding only (about 1e-8 m
+#: on meshes of metres)
+SIGN_EPSILON = 1.0e-5
+
+
+@wp.func(inline=False)
+def inside_by_winding(mid: wp.uint64, p: wp.vec3, d: float, max_dist: float):
+    """True when the point ``p`` (``d``: its distance to the surface) is inside the closed mesh
+    by the generalized winding number, the majority at ``p`` and at two points ``1e-3 d``
+    away: Warp's winding number gives the wrong sign at some points coplanar with a ring of
+    the mesh's vertices (the bundled torus: 16 % of the points of its top plane y = 0.08, up to
+    0.14 m from the surface), off any such plane the others do not. Out of line: its three
+    query states are set up only when it runs (see `mesh_near`)."""
+    q = wp.mesh_query_point_sign_winding_number(mid, p, max_dist)
+    if not q.result:
+        return False
+    e = 1.0e-3 * d
+    q1 = wp.mesh_query_point_sign_winding_number(mid, p + e * wp.vec3(0.5377, 0.8192, 0.1985),
+                                                 max_dist)
+    q2 = wp.mesh_query_point_sign_winding_number(mid, p + e * wp.vec3(-0.6843, 0.1234, 0.7187),
+                                                 max_dist)
+    votes = q.sign + wp.where(q1.result, q1.sign, q.sign) + wp.where(q2.result, q2.sign, q.sign)
+    return votes < 0.0
+
+
 @wp.func
 def closest(mid: wp.uint64, closed: int, p: wp.vec3, p_from: wp.vec3, center: wp.vec3,
             half: wp.vec3, max_dist: float):
     """(found, closest point c, signed distance phi, unit normal n pointing from c to the side
     the point belongs on). Closed mesh: outside; when ``p`` is in the mesh's bounding box the
-    whole mesh is searched, so a point deep inside is found too. Open mesh: the side of ``p``,
-    or of ``p_from`` when ``p`` lies on the surface."""
+    whole mesh is searched, so a point deep inside is found too. The sign is the closest
+    feature's angle-weighted normal (`SIGN_EPSILON`); an "inside" is confirmed by the winding
+    number (`inside_by_winding`: rare, a cloth vertex is seldom inside) and dropped when it
+    says outside, since a wrong "inside" moves the vertex through the mesh. Open mesh: the
+    side of ``p``, or of ``p_from`` when ``p`` lies on the surface."""
     c = p
     phi = float(0.0)
     n = wp.vec3(0.0, 1.0, 0.0)
     if closed != 0:
-        q = wp.mesh_query_point_sign_normal(mid, p, max_dist)
+        q = wp.mesh_query_point_sign_normal(mid, p, max_dist, SIGN_EPSILON)
         if not q.result:
             rel = p - center
             if wp.abs(rel[0]) <= half[0] and wp.abs(rel[1]) <= half[1] and wp.abs(rel[2]) <= half[2]:
                 # in the bounding box: might be deep inside, search the whole mesh
-                q = wp.mesh_query_point_sign_normal(mid, p, 2.0 * wp.length(half) + max_dist)
+                q = wp.mesh_query_point_sign_normal(mid, p, 2.0 * wp.length(half) + max_dist,
+                                                    SIGN_EPSILON)
             if not q.result:
                 return False, c, phi, n
         c = wp.mesh_eval_position(mid, q.face, q.u, q.v)
@@ -97,7 +132,10 @@ def closest(mid: wp.uint64, closed: int, p: wp.vec3, p_from: wp.vec3, center: wp
         dist = wp.length(diff)
         n = wp.mesh_eval_face_normal(mid, q.face)
         phi = dist
-        if q.sign < 0.0:
+        inside = q.sign < 0.0
+        if inside and dist > 1.0e-9:
+            inside = inside_by_winding(mid, p, dist, 2.0 * wp.length(half) + dist + max_dist)
+        if inside:
             phi = -dist
             if dist > 1.0e-9:
                 n = -diff / dist
@@ -870,19 +908,11 @@ def mesh_distance_kernel(mesh: wp.uint64, closed: int, points: wp.array(dtype=wp
     i = wp.tid()
     p = points[i]
     if closed != 0:
-        q = wp.mesh_query_point_sign_winding_number(mesh, p, max_dist)
+        q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
         if q.result:
             c = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
             d = wp.length(p - c)
-            # Warp's winding number gives the wrong sign at some points coplanar with a ring of
-            # the mesh's vertices (the bundled torus: 16 % of the points of its top plane
-            # y = 0.08, up to 0.14 m from the surface): the sign is the majority of it there and
-            # at two points 0.1 % of the distance away, off any such plane
-            e = 1.0e-3 * d
-            q1 = wp.mesh_query_point_sign_winding_number(mesh, p + e * wp.vec3(0.5377, 0.8192, 0.1985), max_dist)
-            q2 = wp.mesh_query_point_sign_winding_number(mesh, p + e * wp.vec3(-0.6843, 0.1234, 0.7187), max_dist)
-            votes = q.sign + wp.where(q1.result, q1.sign, q.sign) + wp.where(q2.result, q2.sign, q.sign)
-            out[i] = wp.where(votes < 0.0, -d, d)
+            out[i] = wp.where(inside_by_winding(mesh, p, d, max_dist), -d, d)
     else:
         q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
         if q.result:
