@@ -695,3 +695,26 @@ def test_a_contact_step_short_of_its_tolerance_that_gains_is_reported():
     assert s["energy_guard_steps"] == 1 and not s["converged"]
     assert s["energy_gain_steps"] == 1
     assert any("gained energy" in str(m) for m in solver.frame_end())
+
+
+def test_chebyshev_fallbacks_are_counted_and_reported():
+    """A Chebyshev inner solve whose residual grows finishes as plain Jacobi
+    (`linear.ChebyshevSolver`); every such fall-back is counted over the run and reported by
+    `frame_end`, not only flagged for the last solve. The divergence is forced by an
+    over-relaxation sequence of 2.5 (no rho of this small system makes one diverge)."""
+    m = hanging_model(res=6, stiffness=1e4, device="cpu")
+    outs = {}
+    for forced in (True, False):
+        solver = ImplicitEuler(m, linear="chebyshev", delay=0, linear_iterations=200,
+                               check_every=5)
+        if forced:
+            solver.linear._omegas = lambda iters: [2.5] * iters
+        st = m.state()
+        for _ in range(2):
+            solver.step(st, 1.0 / 60.0)
+        outs[forced] = (solver.stats["fallbacks_total"], solver.frame_end())
+        assert np.isfinite(st.positions()).all()
+    n, msgs = outs[True]
+    assert n >= 2 and any(f"{n} chebyshev inner solve(s) diverged" in s for s in msgs), outs
+    n, msgs = outs[False]
+    assert n == 0 and not any("diverged" in s for s in msgs), outs

@@ -815,7 +815,9 @@ class ImplicitEuler(Solver):
             (summed over them), ``residual`` (m, of the final iterate; nan when not measured:
             fixed-iteration mode without ``measure_residual``), ``converged`` (``residual <
             tolerance``), ``linear_residual`` (relative, last inner solve; nan when unchecked),
-            ``fallback`` (Chebyshev fell back to Jacobi), ``rho`` (Chebyshev), ``trace``;
+            ``fallback`` (the last inner solve: Chebyshev fell back to Jacobi), ``rho``
+            (Chebyshev), ``trace``; ``fallbacks_total`` (every such fall-back, over the run,
+            reported by `frame_end`);
             run totals: ``unconverged_steps``, ``energy_guard_steps`` (extended),
             ``energy_gain_steps`` (extended and still gaining), ``energy_clamped_steps``
             (shortened toward their start), ``gradient_steps`` (a preconditioned gradient step
@@ -992,6 +994,7 @@ class ImplicitEuler(Solver):
         # steps whose Newton iteration ended above ``tolerance``, inner solves that stopped at
         # their cap above theirs (host counts: both are known on the host in checked mode)
         self._short = {"steps": 0, "new": 0, "last": (0.0, 0, False), "inner": 0, "inner_new": 0,
+                       "fallback": 0, "fallback_new": 0,
                        "floor": 0, "floor_told": False, "floor_last": (0.0, 0.0, 0.0)}
         self._lazy = None
         self.contact_stiffness = float(contact_stiffness)
@@ -1180,6 +1183,7 @@ class ImplicitEuler(Solver):
         fixed = not check and self.linear.capturable
         inner = 0
         inner_short = 0  # inner solves that stopped at their cap above their tolerance
+        fell_back = 0  # Chebyshev inner solves that diverged and finished as Jacobi
         stalled = False  # Newton stopped because an update moved less than step_tolerance
         done = 0
         info = {"residual": float("nan"), "fallback": False}
@@ -1244,6 +1248,8 @@ class ImplicitEuler(Solver):
                 inner += self.linear.iterations if fixed else int(info["iterations"])
             if not fixed and not info.get("converged", True):
                 inner_short += 1
+            if info.get("fallback", False):
+                fell_back += 1
             landed = coupling is not None and self.limit_reversals
             if landed:
                 if self.line_search and guard_ls:  # kept for the fallback below
@@ -1380,6 +1386,9 @@ class ImplicitEuler(Solver):
         if inner_short:
             self._short["inner"] += inner_short
             self._short["inner_new"] += inner_short
+        if fell_back:
+            self._short["fallback"] += fell_back
+            self._short["fallback_new"] += fell_back
         self._stats["unconverged_steps"] = self._short["steps"]
         self._stats["floor_steps"] = self._short["floor"]
         self._stats["energy_guard_steps"] = self._guard["extended"]
@@ -1390,6 +1399,7 @@ class ImplicitEuler(Solver):
         self._stats["unlanded_iterations"] = self._guard["unlanded"]
         self._stats["ls_rejected"] = self._guard["rejected"]
         self._stats["inner_short_total"] = self._short["inner"]
+        self._stats["fallbacks_total"] = self._short["fallback"]
         if self.linear_name == "chebyshev":
             self._stats["rho"] = self.linear.rho
         if self.linear_name in ("jacobi", "chebyshev"):
@@ -1582,7 +1592,11 @@ class ImplicitEuler(Solver):
         if sh["inner_new"]:
             out.append(f"implicit: {sh['inner_new']} {self.linear_name} inner solve(s) stopped at "
                        f"{self.linear.iterations} iterations above their tolerance")
-        sh["new"] = sh["inner_new"] = 0
+        if sh["fallback_new"]:
+            out.append(f"implicit: {sh['fallback_new']} chebyshev inner solve(s) diverged "
+                       "(residual rising) and finished as plain Jacobi from their best iterate "
+                       "(its rho does not fit the Newton matrix: set rho, or use cg)")
+        sh["new"] = sh["inner_new"] = sh["fallback_new"] = 0
         if self.linear_name == "cholesky":
             n = self.linear.fallbacks
             new, self._fallbacks_seen = n - self._fallbacks_seen, n
