@@ -828,6 +828,121 @@ def test_a_spike_tip_is_a_sharp_feature():
     assert 48 not in set(sharp_features(soft.vertices, soft.triangles, 0.02, 0.005)[1].tolist())
 
 
+def _ridge_prism(R=0.033, crease_deg=12.0, span_deg=60.0, depth=0.08, length=0.3, nz=15):
+    """A closed prism along z whose top is a polygonal arc of radius ``R`` (creases of
+    ``crease_deg``, its top vertices on y = 0, one every 2 cm along z)."""
+    k = int(round(span_deg / crease_deg))
+    angs = np.radians(np.arange(-k, k + 1) * crease_deg)
+    prof = [(R * np.sin(a), R * np.cos(a) - R) for a in angs]
+    prof = np.array([(prof[0][0], -depth)] + prof + [(prof[-1][0], -depth)])
+    m = len(prof)
+    zs = np.linspace(-length / 2, length / 2, nz + 1)
+    v = np.array([[x, y, z] for z in zs for (x, y) in prof])
+    f = []
+    for j in range(nz):
+        for i in range(m):
+            a, b = j * m + i, j * m + (i + 1) % m
+            f += [[a, b, b + m], [a, b + m, a + m]]
+    cen = prof.mean(axis=0)
+    base = len(v)
+    v = np.vstack([v, [cen[0], cen[1], zs[0]], [cen[0], cen[1], zs[-1]]])
+    for i in range(m):
+        f += [[base, (i + 1) % m, i], [base + 1, nz * m + i, nz * m + (i + 1) % m]]
+    f = np.array(f)
+    vol = np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum()
+    return v, (f if vol > 0 else f[:, ::-1].copy())
+
+
+def test_dip_probe_measures_a_ridge_of_several_creases():
+    """A rounded ridge (radius 33 mm, creases of 12 degrees: none sharp alone, and the arc
+    estimate of one crease's faces short of 1.5 thicknesses): a 44 mm cloth edge with its
+    ends 5 mm out passes about 2 mm through it (`dip_probe`: the polygon's -1.87 mm beside
+    the circle's -2.02 mm). Only the probe keeps the ridge's vertices; the torus of the
+    `mesh` scene (tube radius 8 cm) still has no feature for its 32 x 32 sheet."""
+    from warp_cloth.collision.features import dip_probe, sharp_features, vertex_normals
+    from warp_cloth.contact_scenes import asset_path
+    from warp_cloth.mesh import TriMesh
+
+    v, f = _ridge_prism()
+    L, h, R = 0.044, 0.005, 0.033
+    top = np.flatnonzero((np.abs(v[:, 0]) < 1e-12) & (np.abs(v[:, 2]) < 0.1))
+    assert len(top) == 10
+    low = dip_probe(v, f, v[top], vertex_normals(v, f)[top], L, h)
+    circle = np.sqrt((R + h) ** 2 - (L / 2) ** 2) - R
+    assert np.all(np.abs(low - circle) < 3e-4), (low, circle)
+    assert not np.isin(top, sharp_features(v, f, L, h)[1]).any()
+    e, kept = sharp_features(v, f, L, h, probe=L)
+    assert np.isin(top, kept).all()
+    ridge = {tuple(sorted(p)) for p in e.tolist() if np.isin(p, top).all()}
+    assert len(ridge) == 9  # the ridge line's edges between its top vertices
+    torus = TriMesh.from_obj(asset_path("torus.obj"))
+    rest = np.hypot(1.0 / 32, 1.0 / 32)  # the sheet's diagonal
+    e, kept = sharp_features(torus.vertices, torus.triangles, 1.2 * rest, h, chord=1.2 * rest,
+                             probe=rest)
+    assert len(e) == 0 and len(kept) == 0
+
+
+def _lumpy(seed, path):
+    """`docs/bench/probes/lumpy_meshes.py`'s family: an icosphere (3 subdivisions) with a
+    smooth random radial relief, written as an OBJ (as ``warp-cloth run mesh --obstacle``)."""
+    t = (1 + 5 ** 0.5) / 2
+    V = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t],
+         [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
+    F = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+         [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+         [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
+    V = [np.array(p, float) / np.linalg.norm(p) for p in V]
+    for _ in range(3):
+        mid, F2 = {}, []
+
+        def m(a, b):
+            k = (min(a, b), max(a, b))
+            if k not in mid:
+                p = V[a] + V[b]
+                V.append(p / np.linalg.norm(p))
+                mid[k] = len(V) - 1
+            return mid[k]
+        for a, b, c in F:
+            ab, bc, ca = m(a, b), m(b, c), m(c, a)
+            F2 += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+        F = F2
+    V = np.array(V)
+    rng = np.random.default_rng(seed)
+    c = rng.normal(size=(6, 3)) * (1 + seed % 2)
+    amp = 0.4 + 0.05 * (seed % 8)
+    r = 0.2 * (1 + amp * np.tanh(sum(np.sin((3 + seed % 3) * V @ ci + k)
+                                     for k, ci in enumerate(c)) / 2))
+    with open(path, "w") as out:
+        for p in V * r[:, None]:
+            out.write("v %.6f %.6f %.6f\n" % tuple(p))
+        for tri in F:
+            out.write("f %d %d %d\n" % tuple(np.array(tri) + 1))
+    return path
+
+
+def test_no_cloth_edge_through_a_ridge_of_several_creases(tmp_path, monkeypatch):
+    """A 32 x 32 sheet dropped on a lumpy mesh (``lumpy`` seed 10), projective dynamics at
+    defaults: without the dip probe a cloth diagonal passed 0.2 mm under a mesh vertex on a
+    ridge of 15, 21 and 18 degree creases (none sharp alone), both its vertices 5 mm out, in
+    frames 26 and 27; with it no cloth edge crosses the mesh."""
+    from warp_cloth.collision import features
+    from warp_cloth.collision.motion import KeyframePath
+    from warp_cloth.contact_scenes import load_obstacle_mesh, mesh
+
+    tm, position, height = load_obstacle_mesh(_lumpy(10, str(tmp_path / "m10.obj")))
+
+    def run():
+        scene = mesh(solver="pd", frames=28, mesh_file=tm, position=position, height=height,
+                     path=KeyframePath([0.0], [[0.0, 0.0, 0.0]]))
+        return scene.run(quiet=True, check_intersections=True)
+
+    st = run()
+    assert st.obstacle_frames == 0 and st.crossing_frames == 0 and st.min_clearance > 0.0049
+    monkeypatch.setattr(features, "PROBE_SHARE", -np.inf)  # the probe keeps nothing
+    st = run()
+    assert st.obstacle_frames > 0
+
+
 def test_feature_response_rounds_go_on_until_every_entry_holds():
     """A patch of cloth dropped 3 cm through a spike's tip in one step (its middle edges
     straddling the tip): two dozen edge-edge entries of nearly opposite normals meet there, and
