@@ -8,7 +8,11 @@ sharply over a cloth edge's length ``L`` can that happen: a cloth edge whose end
 ``(L/2) sin(theta/2) - h``, and under a curved part of radius ``R`` by ``L^2 / (8R) - h``.
 `sharp_features` keeps, once on the host, the convex edges where either exceeds ``h/2`` (``L``:
 the longest cloth edge stretched by 20 %), boundary and non-manifold edges, and their vertices;
-elsewhere a cloth edge may cut at most half the thickness into the surface between its vertices.
+and, since those estimates take one crease or one radius at a time, a probe (`dip_probe`) keeps
+every other convex vertex and convex edge that a straight cloth edge of the longest rest length,
+its ends the thickness out on either side, passes below (a ridge of several moderate creases).
+Elsewhere a rest-length cloth edge stays outside the surface between its vertices (sampled, not
+bounded: a stretched edge may cut into the thickness).
 The 960-triangle torus of the ``mesh`` scene (tube radius 8 cm) has no such feature for the
 default 32 x 32 sheet, and pays nothing; a blade or a thin tube does. Boxes are meshes of their
 12 triangles here (edges and corners). A `Sphere` whose curvature a rest-length cloth triangle
