@@ -345,6 +345,63 @@ class Box(Obstacle):
         return c
 
 
+def orient_closed(vertices, triangles, name: str = "mesh") -> np.ndarray:
+    """The triangles of a closed manifold mesh with consistent windings: every edge is run one
+    way by one of its two triangles and the other way by the other. A part (connected
+    component) that was inconsistent is wound so that its signed volume is positive (outward);
+    a part that was consistent keeps its windings (a cavity's inward shell stays so); the
+    caller then turns the whole mesh outward by its total volume. An exported mesh with some
+    faces flipped otherwise had its sign of distance wrong near them (10 % of a lumpy mesh's
+    faces flipped: cloth vertices 42 mm inside it, 24 % strain). Raises ValueError naming the
+    mesh for a non-orientable one (a Moebius-like part)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64).copy()
+    nf = len(t)
+    if nf == 0:
+        return t
+    d = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])  # directed, edge k of face f
+    face = np.tile(np.arange(nf), 3)
+    key = np.sort(d, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    ks, ds, fs = key[order], d[order], face[order]
+    first = np.flatnonzero((ks[1:] == ks[:-1]).all(axis=1))  # pairs (i, i + 1): closed manifold
+    f1, f2 = fs[first], fs[first + 1]
+    same = (ds[first] == ds[first + 1]).all(axis=1)  # both run the edge the same way
+    if not same.any():
+        return t
+    nbr = [[] for _ in range(nf)]
+    for a, b, s in zip(f1.tolist(), f2.tolist(), same.tolist()):
+        nbr[a].append((b, s))
+        nbr[b].append((a, s))
+    flip = np.full(nf, -1, dtype=np.int64)
+    for root in range(nf):
+        if flip[root] >= 0:
+            continue
+        flip[root] = 0
+        part, stack, changed = [root], [root], False
+        while stack:
+            f = stack.pop()
+            for g, s in nbr[f]:
+                want = flip[f] ^ int(s)
+                if flip[g] < 0:
+                    flip[g] = want
+                    changed |= bool(want)
+                    part.append(g)
+                    stack.append(g)
+                elif flip[g] != want:
+                    raise ValueError(f"mesh {name!r} is not orientable (its triangles cannot all be "
+                                     f"wound consistently; e.g. around triangle {g}); a closed "
+                                     "obstacle needs an inside and an outside")
+        if changed:
+            part = np.asarray(part)
+            sel = part[flip[part] == 1]
+            t[sel] = t[sel][:, [0, 2, 1]]
+            a, b, c = v[t[part, 0]], v[t[part, 1]], v[t[part, 2]]
+            if np.einsum("ij,ij->i", a, np.cross(b, c)).sum() < 0:
+                t[part] = t[part][:, [0, 2, 1]]
+    return t
+
+
 class MeshObstacle(Obstacle):
     """A rigid triangle mesh obstacle.
 
@@ -395,6 +452,7 @@ class MeshObstacle(Obstacle):
         verts = np.asarray(mesh.vertices, dtype=np.float64) * scale
         tris = np.asarray(mesh.triangles, dtype=np.int64).copy()
         if self.closed:
+            tris = orient_closed(verts, tris, mesh.name)
             a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
             vol = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
             if vol < 0:  # inward-facing: flip so that normals point out
