@@ -639,6 +639,25 @@ def test_closed_mesh_with_flipped_faces_is_wound_consistently():
         MeshObstacle(TriMesh(pts, rp2, name="rp2"))
 
 
+def test_closed_mesh_split_along_seams_is_welded():
+    """A closed mesh exported with one vertex per face corner (split along every seam) is
+    welded back: closed, its inside known, and no seam edge a rim (a sharp feature). Vertices
+    that only look alike are not merged into a mesh that would not be valid."""
+    ball = TriMesh.from_obj(asset_path("sphere.obj"))
+    v, t = np.asarray(ball.vertices), np.asarray(ball.triangles)
+    split = TriMesh(v[t.ravel()], np.arange(3 * len(t)).reshape(-1, 3), name="split")
+    assert len(split.boundary_edges) == 3 * len(t)
+    ob = MeshObstacle(split, scale=0.3)
+    assert ob.closed and len(ob.vertices) == len(v) and len(ob.triangles) == len(t)
+    pts = np.array([[0.0, 0.1, 0.0], [0.0, 0.5, 0.0]])
+    assert np.allclose(ob.signed_distance(pts), MeshObstacle(ball, scale=0.3).signed_distance(pts))
+    # two triangles meeting at one edge, duplicated so that welding would give one edge four
+    # triangles: left as given
+    q = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1], [0, -1, 0.0]])
+    fan = TriMesh(q[[0, 1, 2, 0, 1, 3, 0, 1, 4, 0, 1, 5]], np.arange(12).reshape(4, 3), name="fan")
+    assert len(MeshObstacle(fan).vertices) == 12
+
+
 def test_mesh_contact_sign_not_turned_by_a_nearly_as_close_part():
     """A vertex 30 mm outside, between a sharp tip (29.99 mm) and a wall (30.01 mm), touches
     nothing. Warp's closest-point query with its default tie tolerance (1e-3 of the average
