@@ -1,9 +1,13 @@
-"""Write four lumpy closed meshes (icospheres of 1,280 triangles with a smooth random radial
-relief, 0.2 m mean radius) for ``warp-cloth run mesh --obstacle``:
-``python docs/bench/probes/lumpy_meshes.py DIR`` writes DIR/lumpy1.obj .. lumpy4.obj, then e.g.
+"""Write lumpy closed meshes (icospheres with a smooth random radial relief, 0.2 m mean radius)
+for ``warp-cloth run mesh --obstacle``:
+``python docs/bench/probes/lumpy_meshes.py DIR`` writes DIR/lumpy1.obj .. lumpy4.obj (1,280
+triangles) and DIR/m5.obj .. m16.obj (1,280 or 5,120 triangles, relief 40-75 %, 3-5 waves:
+the sweep of 2026-12-07, twenty-first session), then e.g.
 ``warp-cloth run mesh --obstacle DIR/lumpy3.obj --solver explicit --frames 90
 --check-intersections`` and ``warp-cloth check OUT.usd``. Measured 2026-12-07:
-docs/bench/selfcollision.md (lumpy3, the roughest, defeats explicit Euler: not mended)."""
+docs/bench/selfcollision.md (lumpy3 defeated explicit Euler until the sign of Warp's closest-point
+query was confirmed; m10 had a cloth edge through a ridge of several creases until the dip
+probe)."""
 import os
 import sys
 
@@ -22,6 +26,20 @@ for seed in (1, 2, 3, 4):
     amp = [0.35, 0.5, 0.45, 0.6][seed - 1]
     r = 0.2 * (1 + amp * np.tanh(sum(np.sin(3 * V @ ci + k) for k, ci in enumerate(c)) / 2))
     path = os.path.join(out, f"lumpy{seed}.obj")
+    with open(path, "w") as f:
+        for v in V * r[:, None]:
+            f.write("v %.6f %.6f %.6f\n" % tuple(v))
+        for t in F:
+            f.write("f %d %d %d\n" % tuple(t + 1))
+    print(path)
+for seed in range(5, 17):
+    V, F = _icosphere(3 if seed % 3 else 4, 1.0)  # noqa: F821
+    rng = np.random.default_rng(seed)
+    c = rng.normal(size=(6, 3)) * (1 + seed % 2)
+    amp = 0.4 + 0.05 * (seed % 8)
+    r = 0.2 * (1 + amp * np.tanh(sum(np.sin((3 + seed % 3) * V @ ci + k)
+                                     for k, ci in enumerate(c)) / 2))
+    path = os.path.join(out, f"m{seed}.obj")
     with open(path, "w") as f:
         for v in V * r[:, None]:
             f.write("v %.6f %.6f %.6f\n" % tuple(v))
