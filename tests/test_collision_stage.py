@@ -885,28 +885,10 @@ def test_dip_probe_measures_a_ridge_of_several_creases():
 def _lumpy(seed, path):
     """`docs/bench/probes/lumpy_meshes.py`'s family: an icosphere (3 subdivisions) with a
     smooth random radial relief, written as an OBJ (as ``warp-cloth run mesh --obstacle``)."""
-    t = (1 + 5 ** 0.5) / 2
-    V = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t],
-         [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
-    F = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
-         [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
-         [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
-    V = [np.array(p, float) / np.linalg.norm(p) for p in V]
-    for _ in range(3):
-        mid, F2 = {}, []
+    from warp_cloth.mesh import TriMesh
 
-        def m(a, b):
-            k = (min(a, b), max(a, b))
-            if k not in mid:
-                p = V[a] + V[b]
-                V.append(p / np.linalg.norm(p))
-                mid[k] = len(V) - 1
-            return mid[k]
-        for a, b, c in F:
-            ab, bc, ca = m(a, b), m(b, c), m(c, a)
-            F2 += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        F = F2
-    V = np.array(V)
+    ico = TriMesh.icosphere(3, 1.0)
+    V, F = np.asarray(ico.vertices), np.asarray(ico.triangles)
     rng = np.random.default_rng(seed)
     c = rng.normal(size=(6, 3)) * (1 + seed % 2)
     amp = 0.4 + 0.05 * (seed % 8)

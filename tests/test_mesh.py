@@ -195,3 +195,17 @@ def test_weld_refuses_what_it_would_collapse(tmp_path):
     for bad in (-1.0, "close", float("nan")):
         with pytest.raises(ValueError, match=r"seam\.obj: weld must be"):
             TriMesh.from_obj(p, weld=bad)
+
+
+def test_icosphere_is_a_closed_sphere_and_checks_its_arguments():
+    m = TriMesh.icosphere(2, 0.5)
+    assert len(m.triangles) == 20 * 4 ** 2 and len(m.boundary_edges) == 0
+    assert np.allclose(np.linalg.norm(m.vertices, axis=1), 0.5)
+    v = m.vertices
+    t = m.triangles
+    n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    assert (np.einsum("ij,ij->i", n, v[t].mean(axis=1)) > 0).all()  # outward
+    for bad in ({"subdivisions": -1}, {"subdivisions": 9}, {"radius": 0.0},
+                {"radius": float("nan")}):
+        with pytest.raises(ValueError, match="icosphere"):
+            TriMesh.icosphere(**bad)

@@ -445,6 +445,43 @@ class TriMesh:
         return cls(verts, tris, grid_shape=(nx, ny), name=name,
                    up_axis=up_axis)
 
+    @classmethod
+    def icosphere(cls, subdivisions: int = 3, radius: float = 1.0,
+                  name: str = "icosphere") -> "TriMesh":
+        """A closed sphere of ``radius`` m: an icosahedron whose triangles are split in four
+        ``subdivisions`` times (20 * 4^s triangles), the new vertices pushed onto the sphere;
+        outward windings. A test and probe mesh (the lumpy meshes of
+        ``docs/bench/probes/lumpy_meshes.py`` are these with a radial relief)."""
+        s = int(subdivisions)
+        if not 0 <= s <= 8:
+            raise ValueError(f"icosphere: subdivisions must be an integer in [0, 8], got "
+                             f"{subdivisions!r}")
+        r = float(radius)
+        if not (math.isfinite(r) and r > 0):
+            raise ValueError(f"icosphere: radius must be a positive finite number, got {radius!r}")
+        t = (1 + 5 ** 0.5) / 2
+        V = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+             [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
+        F = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+             [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+             [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
+        V = [np.array(p, float) / np.linalg.norm(p) for p in V]
+        for _ in range(s):
+            mid, F2 = {}, []
+
+            def m(a, b):
+                k = (min(a, b), max(a, b))
+                if k not in mid:
+                    p = V[a] + V[b]
+                    V.append(p / np.linalg.norm(p))
+                    mid[k] = len(V) - 1
+                return mid[k]
+            for a, b, c in F:
+                ab, bc, ca = m(a, b), m(b, c), m(c, a)
+                F2 += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+            F = F2
+        return cls(np.array(V) * r, np.array(F), name=name)
+
     # ------------------------------------------------------------------ loaders
     @classmethod
     def from_file(cls, path: str | os.PathLike) -> "TriMesh":

@@ -13,36 +13,35 @@ import sys
 
 import numpy as np
 
+from warp_cloth import TriMesh
+
 sys.argv += [] if len(sys.argv) > 1 else ["."]
-here = os.path.dirname(os.path.abspath(__file__))
-src = open(os.path.join(here, "robust.py")).read()
-exec(compile(src[src.index("def _icosphere"):src.index("case, solver = sys.argv[1]")], "robust", "exec"))
 out = sys.argv[1]
 os.makedirs(out, exist_ok=True)
+
+
+def lumpy(sub, seed, amp, waves):
+    """An icosphere of ``sub`` subdivisions, radius 0.2 m times ``1 + amp tanh(...)``: a sum of
+    six sine waves of ``waves`` per radian in random directions (``seed``)."""
+    m = TriMesh.icosphere(sub, 1.0)
+    V = np.asarray(m.vertices)
+    rng = np.random.default_rng(seed)
+    c = rng.normal(size=(6, 3)) * (1 + seed % 2)
+    r = 0.2 * (1 + amp * np.tanh(sum(np.sin(waves * V @ ci + k) for k, ci in enumerate(c)) / 2))
+    return V * r[:, None], np.asarray(m.triangles)
+
+
+def write(name, V, F):
+    path = os.path.join(out, name + ".obj")
+    with open(path, "w") as f:
+        for v in V:
+            f.write("v %.6f %.6f %.6f\n" % tuple(v))
+        for t in F:
+            f.write("f %d %d %d\n" % tuple(t + 1))
+    print(path)
+
+
 for seed in (1, 2, 3, 4):
-    V, F = _icosphere(3, 1.0)  # noqa: F821 (from robust.py)
-    rng = np.random.default_rng(seed)
-    c = rng.normal(size=(6, 3)) * (1 + seed % 2)
-    amp = [0.35, 0.5, 0.45, 0.6][seed - 1]
-    r = 0.2 * (1 + amp * np.tanh(sum(np.sin(3 * V @ ci + k) for k, ci in enumerate(c)) / 2))
-    path = os.path.join(out, f"lumpy{seed}.obj")
-    with open(path, "w") as f:
-        for v in V * r[:, None]:
-            f.write("v %.6f %.6f %.6f\n" % tuple(v))
-        for t in F:
-            f.write("f %d %d %d\n" % tuple(t + 1))
-    print(path)
+    write(f"lumpy{seed}", *lumpy(3, seed, [0.35, 0.5, 0.45, 0.6][seed - 1], 3))
 for seed in range(5, 17):
-    V, F = _icosphere(3 if seed % 3 else 4, 1.0)  # noqa: F821
-    rng = np.random.default_rng(seed)
-    c = rng.normal(size=(6, 3)) * (1 + seed % 2)
-    amp = 0.4 + 0.05 * (seed % 8)
-    r = 0.2 * (1 + amp * np.tanh(sum(np.sin((3 + seed % 3) * V @ ci + k)
-                                     for k, ci in enumerate(c)) / 2))
-    path = os.path.join(out, f"m{seed}.obj")
-    with open(path, "w") as f:
-        for v in V * r[:, None]:
-            f.write("v %.6f %.6f %.6f\n" % tuple(v))
-        for t in F:
-            f.write("f %d %d %d\n" % tuple(t + 1))
-    print(path)
+    write(f"m{seed}", *lumpy(3 if seed % 3 else 4, seed, 0.4 + 0.05 * (seed % 8), 3 + seed % 3))

@@ -16,29 +16,9 @@ from warp_cloth.usd import read_points
 
 
 def _icosphere(sub, r):
-    """An icosahedron subdivided ``sub`` times, on a sphere of radius ``r``."""
-    t = (1 + 5 ** 0.5) / 2
-    V = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t],
-         [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
-    F = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
-         [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
-         [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
-    V = [np.array(v, float) / np.linalg.norm(v) for v in V]
-    for _ in range(sub):
-        mid, F2 = {}, []
-
-        def m(a, b):
-            k = (min(a, b), max(a, b))
-            if k not in mid:
-                p = V[a] + V[b]
-                V.append(p / np.linalg.norm(p))
-                mid[k] = len(V) - 1
-            return mid[k]
-        for a, b, c in F:
-            ab, bc, ca = m(a, b), m(b, c), m(c, a)
-            F2 += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        F = F2
-    return np.array(V) * r, np.array(F)
+    """An icosahedron subdivided ``sub`` times, on a sphere of radius ``r``: (V, F)."""
+    m = TriMesh.icosphere(sub, r)
+    return np.asarray(m.vertices), np.asarray(m.triangles)
 
 
 case, solver = sys.argv[1], sys.argv[2]
