@@ -354,3 +354,18 @@ def test_meshes_bench_checks_are_exact_and_find_what_self_collision_prevents(cap
     rc = meshes.main(["--cases", "jitterfold", "--solver", "pd", "--frames", "40",
                       "--self-collision", "off"])
     assert rc == 1 and "| jitterfold | pd |" in capsys.readouterr().out
+
+
+def test_meshes_bench_lumpy_obstacle_is_written_as_exporters_do_and_read_back_closed():
+    """`bench meshes`' ``lumpy`` case: the obstacle's source has one vertex per face corner and
+    a tenth of its faces wound the other way; the obstacle is closed, welded and wound
+    outward (the case itself, four solvers: docs/bench/meshes.md)."""
+    from warp_cloth.bench import meshes
+
+    ob = meshes.lumpy_obstacle()
+    src = ob.source
+    assert len(src.vertices) == 3 * len(src.triangles) and len(src.boundary_edges) > 0
+    assert ob.closed and len(ob.vertices) == 642 and len(ob.triangles) == 1280
+    d = np.concatenate([ob.triangles[:, [0, 1]], ob.triangles[:, [1, 2]], ob.triangles[:, [2, 0]]])
+    assert len({tuple(e) for e in d.tolist()}) == len(d)
+    assert abs(float(ob.vertices[:, 1].min())) < 1e-12

@@ -462,6 +462,7 @@ class MeshObstacle(Obstacle):
                 > FLOAT32_MAX:
             raise ValueError(f"scale {scale:g} puts the mesh's vertices beyond the float32 range "
                              "the simulation computes in")
+        given = mesh
         if len(mesh.boundary_edges):
             mesh = weld_seams(mesh)
         auto_closed = len(mesh.boundary_edges) == 0
@@ -481,7 +482,7 @@ class MeshObstacle(Obstacle):
                 tris = tris[:, [0, 2, 1]]
         self.vertices = verts
         self.triangles = tris
-        self.source = mesh
+        self.source = given  # as given (before welding and winding)
         self._wp_mesh = {}
         super().__init__(position, rotation, motion, friction, restitution, name or mesh.name)
 
