@@ -882,6 +882,48 @@ def test_dip_probe_measures_a_ridge_of_several_creases():
     assert len(e) == 0 and len(kept) == 0
 
 
+def _tent(up: bool, slope_deg: float = 25.0):
+    """An open tent: two 0.35 x 0.8 m slopes meeting at a ridge along z at y = 0.3 (a grid of
+    8 x 10 cells), its faces wound so that their normals point up (``up``) or down."""
+    from warp_cloth.mesh import TriMesh
+
+    xs = np.linspace(-0.35, 0.35, 9)
+    zs = np.linspace(-0.4, 0.4, 11)
+    v = np.array([[x, 0.3 - abs(x) * np.tan(np.radians(slope_deg)), z] for z in zs for x in xs])
+    m = len(xs)
+    f = np.array([tri for j in range(len(zs) - 1) for i in range(m - 1)
+                  for tri in ([j * m + i, (j + 1) * m + i + 1, j * m + i + 1],
+                              [j * m + i, (j + 1) * m + i, (j + 1) * m + i + 1])])
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    if (n[:, 1].mean() > 0) != up:
+        f = f[:, ::-1].copy()
+    return TriMesh(v, f, name="tent")
+
+
+def test_an_open_mesh_is_sharp_from_either_side(tmp_path):
+    """An open mesh is met from either side: its ridge is a sharp feature whichever way its
+    faces are wound. With the normals pointing down the ridge was taken for a valley and kept
+    out, and a 32 x 32 sheet dropped over it (half a cell off the ridge) had a cloth edge through
+    it in 6 frames (explicit Euler)."""
+    from warp_cloth.collision.features import sharp_features
+    from warp_cloth.collision.motion import KeyframePath
+    from warp_cloth.contact_scenes import mesh
+
+    ridge = set()
+    for up in (True, False):
+        tent = _tent(up)
+        e, _ = sharp_features(tent.vertices, tent.triangles, 0.053, 0.005, probe=0.044)
+        top = np.flatnonzero(np.isclose(tent.vertices[:, 1], 0.3))
+        on = {tuple(sorted(p)) for p in e.tolist() if np.isin(p, top).all()}
+        assert len(on) == 10, (up, len(on))  # the ridge line's edges
+        ridge.add(frozenset(on))
+    assert len(ridge) == 1
+    scene = mesh(solver="explicit", frames=60, mesh_file=_tent(False), position=(0.0, 0.0, 0.0),
+                 height=0.4, path=KeyframePath([0.0], [[0.0, 0.0, 0.0]]), center=(0.0156, 0.0))
+    st = scene.run(quiet=True, check_intersections=True)
+    assert st.obstacle_frames == 0 and st.crossing_frames == 0
+
+
 def _lumpy(seed, path):
     """`docs/bench/probes/lumpy_meshes.py`'s family: an icosphere (3 subdivisions) with a
     smooth random radial relief, written as an OBJ (as ``warp-cloth run mesh --obstacle``)."""

@@ -127,7 +127,7 @@ PROBE_RADII = tuple(0.25 + 0.5 * k / (11 - 1) for k in range(11))  # 0.25 .. 0.7
 
 
 @wp.kernel
-def probe_ends_kernel(mid: wp.uint64, cpts: wp.array(dtype=wp.vec3),
+def probe_ends_kernel(mid: wp.uint64, two_sided: int, cpts: wp.array(dtype=wp.vec3),
                       cnrm: wp.array(dtype=wp.vec3), length: float, gap: float,
                       radii: wp.array(dtype=float), ends: wp.array3d(dtype=wp.vec3),
                       ok: wp.array3d(dtype=int)):
@@ -150,6 +150,8 @@ def probe_ends_kernel(mid: wp.uint64, cpts: wp.array(dtype=wp.vec3),
     if not ray.result:
         return
     fn = wp.mesh_eval_face_normal(mid, ray.face)
+    if two_sided != 0 and wp.dot(fn, n) < 0.0:
+        fn = -fn  # an open mesh: either side is outside
     if wp.dot(fn, n) <= 0.0:
         return  # a back face: the ray started inside another part
     e = start - ray.t * n + gap * fn
@@ -192,7 +194,7 @@ def probe_dip_kernel(cpts: wp.array(dtype=wp.vec3), cnrm: wp.array(dtype=wp.vec3
 
 
 def dip_probe(vertices, triangles, points, normals, length: float, gap: float,
-              device="cpu") -> np.ndarray:
+              device="cpu", two_sided: bool = False) -> np.ndarray:
     """Per candidate point on the mesh (``points``, unit ``normals``): the lowest height above it
     of a straight cloth edge of at most ``length`` whose ends lie ``gap`` out from the surface
     on opposite sides of it, sampled: `PROBE_DIRECTIONS` directions in its tangent plane, the
@@ -201,7 +203,8 @@ def dip_probe(vertices, triangles, points, normals, length: float, gap: float,
     5.7 s for a lumpy 82k-triangle mesh, 1.6 s of it the estimates). Below zero, such an edge passes through the
     mesh there with both ends outside. The crease and arc estimates of `sharp_features` take
     one crease or one radius at a time; this measures a ridge bent by several creases in a
-    row. Samples, not a bound."""
+    row. Samples, not a bound. ``two_sided``: an open mesh, whose faces are met from either side
+    (each candidate's normal gives the side probed)."""
     v = np.asarray(vertices, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -216,7 +219,7 @@ def dip_probe(vertices, triangles, points, normals, length: float, gap: float,
     ends = wp.zeros(shape, dtype=wp.vec3, device=d)
     ok = wp.zeros(shape, dtype=int, device=d)
     launch(probe_ends_kernel, shape,
-           [mesh.id, cp, cn, float(length), float(gap),
+           [mesh.id, int(two_sided), cp, cn, float(length), float(gap),
             wp.array(PROBE_RADII, dtype=float, device=d), ends, ok], device=d)
     low = wp.zeros(len(pts), dtype=float, device=d)
     launch(probe_dip_kernel, len(pts), [cp, cn, float(length), ends, ok, low], device=d)
@@ -268,9 +271,12 @@ def sharp_features(vertices, triangles, length: float, thickness: float,
     L, h = float(length), float(thickness)
     open_v = np.zeros(len(v), dtype=bool)  # on a boundary or non-manifold edge
     open_v[key[start[count != 2]].ravel()] = True
-    tips = _sharp_tips(v, t, L, h, open_v)
+    # an open mesh is met from either side: a crease or tip convex from its back counts too
+    # (a tent's ridge whose normals pointed down was no feature: a cloth edge through it)
+    two = bool((count != 2).any())
+    tips = _sharp_tips(v, t, L, h, open_v, two_sided=two)
     soft = _sharp_tips(v, t, float(chord) if chord is not None else L, h, open_v,
-                       share=SOFT_TIP_SHARE)
+                       share=SOFT_TIP_SHARE, two_sided=two)
     sharp, rest = [], []  # rest: convex manifold edges not sharp by the estimates
     for s, c in zip(start, count):
         a, b = key[s]
@@ -278,7 +284,8 @@ def sharp_features(vertices, triangles, length: float, thickness: float,
             sharp.append((a, b))
             continue
         f1, f2 = face[s], face[s + 1]
-        if float((v[opp[s + 1]] - v[a]) @ n[f1]) >= 0.0:
+        side = float((v[opp[s + 1]] - v[a]) @ n[f1])
+        if side >= 0.0 and not (two and side > 0.0):
             continue  # concave or flat: a straight edge outside it stays outside
         theta = math.acos(min(1.0, max(-1.0, float(n[f1] @ n[f2]))))
         ell = max(float(np.linalg.norm(cen[f1] - cen[f2])), 1e-12)
@@ -309,15 +316,20 @@ def sharp_features(vertices, triangles, length: float, thickness: float,
         mean = np.bincount(ue.ravel(), weights=np.repeat(elen, 2), minlength=len(v)) / \
             np.maximum(deg, 1)
         coarse = mean >= PROBE_FINE * float(probe)
-        cand_v = np.flatnonzero(_convex_vertices(v, t) & ~open_v & ~kept & coarse)
+        cand_v = np.flatnonzero(_convex_vertices(v, t, two) & ~open_v & ~kept & coarse)
         ce = np.asarray([r[:2] for r in rest], dtype=np.int64).reshape(-1, 2)
         fs = np.asarray([r[2:] for r in rest], dtype=np.int64).reshape(-1, 2)
         cn = n[fs[:, 0]] + n[fs[:, 1]]
         cn /= np.maximum(np.linalg.norm(cn, axis=1, keepdims=True), 1e-300)
         pts = np.concatenate([v[cand_v], 0.5 * (v[ce[:, 0]] + v[ce[:, 1]])])
         nrm = np.concatenate([vertex_normals(v, t)[cand_v], cn])
-        low = dip_probe(v, t, pts, nrm, float(probe), h, device)
+        nc = len(pts)
+        if two:  # an open mesh: probed from both sides
+            pts, nrm = np.concatenate([pts, pts]), np.concatenate([nrm, -nrm])
+        low = dip_probe(v, t, pts, nrm, float(probe), h, device, two_sided=two)
         hit = low < PROBE_SHARE * h
+        if two:
+            hit = hit[:nc] | hit[nc:]
         probe_v = cand_v[hit[:len(cand_v)]]
         sharp += [tuple(e) for e in ce[hit[len(cand_v):]].tolist()]
     edges = np.asarray(sharp, dtype=np.int64).reshape(-1, 2)
@@ -377,9 +389,10 @@ def box_mesh(half_extents):
     return v, np.asarray(tris, dtype=np.int64)
 
 
-def _convex_vertices(v, t) -> np.ndarray:
+def _convex_vertices(v, t, two_sided: bool = False) -> np.ndarray:
     """Per vertex: True when it lies outside the plane through its faces' centroids along its
-    (area-weighted) normal."""
+    (area-weighted) normal; ``two_sided`` (an open mesh, met from either side): off that plane
+    on either side."""
     nv = len(v)
     area_n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
     vn = np.zeros_like(v)
@@ -392,12 +405,13 @@ def _convex_vertices(v, t) -> np.ndarray:
         np.add.at(deg, t[:, k], 1.0)
     used = deg > 0
     convex = np.zeros(nv, dtype=bool)
-    convex[used] = np.einsum("ij,ij->i", v[used] - cen_sum[used] / deg[used, None],
-                             vn[used]) > 0.0
+    off = np.einsum("ij,ij->i", v[used] - cen_sum[used] / deg[used, None], vn[used])
+    convex[used] = (np.abs(off) > 0.0) if two_sided else (off > 0.0)
     return convex
 
 
-def _sharp_tips(v, t, L: float, h: float, open_v, share: float = 1.5) -> np.ndarray:
+def _sharp_tips(v, t, L: float, h: float, open_v, share: float = 1.5,
+                two_sided: bool = False) -> np.ndarray:
     """Per vertex: a convex tip that a cloth edge of length ``L`` dips into by more than
     ``share`` times ``h`` (`sharp_features`); not the vertices of ``open_v`` (on a boundary or
     non-manifold edge, whose angle defect means nothing)."""
@@ -411,7 +425,7 @@ def _sharp_tips(v, t, L: float, h: float, open_v, share: float = 1.5) -> np.ndar
         c = np.einsum("ij,ij->i", u, w) / np.maximum(
             np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1), 1e-300)
         np.add.at(angle, t[:, k], np.arccos(np.clip(c, -1.0, 1.0)))
-    convex = _convex_vertices(v, t)
+    convex = _convex_vertices(v, t, two_sided)
     used = np.zeros(nv, dtype=bool)
     used[t.ravel()] = True
     sin_a = np.clip(1.0 - (2.0 * math.pi - angle) / (2.0 * math.pi), 0.0, 1.0)
