@@ -149,6 +149,37 @@ def test_usd_round_trip(tmp_path):
     assert np.allclose(r.vertices[:, 1], [2, 2, 3, 3])
 
 
+def test_usd_obstacle_takes_every_mesh_of_the_stage(tmp_path):
+    """An obstacle stage of several meshes (a seat and a leg under their own transforms): the
+    obstacle has every part, in world space and metres; a cloth read from the same stage is its
+    first mesh, as before. Only the first was taken for the obstacle too: the other parts were
+    dropped without a word."""
+    from pxr import Gf, Usd, UsdGeom
+
+    from warp_cloth.collision import MeshObstacle
+    from warp_cloth.contact_scenes import load_obstacle_mesh
+
+    part = TriMesh.icosphere(1, 0.1)  # a closed part
+    stage = Usd.Stage.CreateNew(str(tmp_path / "chair.usda"))
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)  # centimetres
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    for k, (name, y) in enumerate((("seat", 50.0), ("leg", 20.0))):
+        xf = UsdGeom.Xform.Define(stage, f"/Chair/{name}")
+        xf.AddTranslateOp().Set(Gf.Vec3d(10.0 * k, y, 0.0))
+        m = UsdGeom.Mesh.Define(stage, f"/Chair/{name}/mesh")
+        m.CreatePointsAttr([tuple(p) for p in (part.vertices * 100.0).tolist()])
+        m.CreateFaceVertexCountsAttr([3] * len(part.triangles))
+        m.CreateFaceVertexIndicesAttr(np.asarray(part.triangles).ravel().tolist())
+    stage.Save()
+    path = tmp_path / "chair.usda"
+    ob = MeshObstacle(str(path))
+    assert len(ob.vertices) == 2 * len(part.vertices) and ob.closed
+    assert np.isclose(ob.vertices[:, 1].max(), 0.6) and np.isclose(ob.vertices[:, 1].min(), 0.1)
+    tm, position, height = load_obstacle_mesh(path)
+    assert len(tm.vertices) == 2 * len(part.vertices) and np.isclose(position[1], -0.1)
+    assert len(TriMesh.from_usd(path).vertices) == len(part.vertices)
+
+
 def _two_patches(gap=0.0, jitter=0.0):
     a = TriMesh.grid(2, 2, size=1.0, plane="xz")
     b = TriMesh.grid(2, 2, size=1.0, plane="xz", origin=(1.0 + gap, 0.0, 0.0))

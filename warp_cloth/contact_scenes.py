@@ -237,7 +237,7 @@ def load_obstacle_mesh(path, scale: float = 1.0, gap: float = 0.1):
     """A mesh file as the `mesh` scene's obstacle, standing still on the floor: ``(mesh,
     position, height)`` for `mesh`'s ``mesh_file``, ``position`` and ``height`` (``warp-cloth
     run mesh --obstacle FILE``). ``path``: an ``.obj`` (``scale``: metres per file unit) or a
-    ``.usd``/``.usda``/``.usdc`` (its first `UsdGeom.Mesh`, in metres by the stage's
+    ``.usd``/``.usda``/``.usdc`` (all its `UsdGeom.Mesh` prims as one, in metres by the stage's
     ``metersPerUnit``, times ``scale``); a Z-up stage's mesh is turned Y-up, the scenes' up.
     The mesh is centred over the origin with its lowest point on the floor (y = 0), and the
     sheet starts ``gap`` m above its highest point. Raises ValueError naming the file when it
@@ -252,7 +252,7 @@ def load_obstacle_mesh(path, scale: float = 1.0, gap: float = 0.1):
     if os.path.splitext(path)[1].lower() not in (".obj",) + USD_EXTENSIONS:
         raise ValueError(f"obstacle mesh file {path!r}: expected an .obj, .usd, .usda or .usdc "
                          f"file")
-    tm = TriMesh.from_file(path)
+    tm = TriMesh.from_file(path, all_meshes=True)
     v = np.asarray(tm.vertices, dtype=np.float64)
     if getattr(tm, "up_axis", "Y") == "Z":  # (x, y, z) Z-up -> (x, z, -y) Y-up
         v = np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)

@@ -484,11 +484,12 @@ class TriMesh:
 
     # ------------------------------------------------------------------ loaders
     @classmethod
-    def from_file(cls, path: str | os.PathLike) -> "TriMesh":
+    def from_file(cls, path: str | os.PathLike, all_meshes: bool = False) -> "TriMesh":
         """A mesh file by its extension: a USD stage's first mesh (`USD_EXTENSIONS`,
-        `from_usd`), else an OBJ (`from_obj`)."""
+        `from_usd`; ``all_meshes``: all of them as one), else an OBJ (`from_obj`: every face
+        of the file)."""
         if os.path.splitext(os.fspath(path))[1].lower() in USD_EXTENSIONS:
-            return cls.from_usd(path)
+            return cls.from_usd(path, all_meshes=all_meshes)
         return cls.from_obj(path)
 
     @classmethod
@@ -589,8 +590,11 @@ class TriMesh:
                 fh.write(f"f {t[0] + 1} {t[1] + 1} {t[2] + 1}\n")
 
     @classmethod
-    def from_usd(cls, path: str | os.PathLike, prim_path: str | None = None, time=None) -> "TriMesh":
-        """Load a `UsdGeom.Mesh` (the first one found, or the one at ``prim_path``).
+    def from_usd(cls, path: str | os.PathLike, prim_path: str | None = None, time=None,
+                 all_meshes: bool = False) -> "TriMesh":
+        """Load a `UsdGeom.Mesh` (the first one found, or the one at ``prim_path``; with
+        ``all_meshes``, every mesh of the stage as one, its parts apart: an obstacle made of
+        several, such as a chair's seat and legs, `MeshObstacle`).
 
         Points are taken at ``time`` (default: the default value, else the earliest time sample)
         and transformed to world space; polygons are fan-triangulated. The mesh keeps the stage's
@@ -614,9 +618,20 @@ class TriMesh:
             if not prim or not prim.IsA(UsdGeom.Mesh):
                 raise ValueError(f"{path}: no UsdGeom.Mesh at {prim_path}")
         else:
-            prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)), None)
-            if prim is None:
+            prims = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+            if not prims:
                 raise ValueError(f"{path}: no UsdGeom.Mesh in the stage")
+            prim = prims[0]
+            if all_meshes and len(prims) > 1:
+                parts = [cls.from_usd(path, str(p.GetPath()), time) for p in prims]
+                verts, tris, base = [], [], 0
+                for m in parts:
+                    verts.append(m.vertices)
+                    tris.append(np.asarray(m.triangles) + base)
+                    base += len(m.vertices)
+                return cls(np.concatenate(verts), np.concatenate(tris),
+                           name=os.path.splitext(os.path.basename(os.fspath(path)))[0],
+                           up_axis=parts[0].up_axis)
         up_axis = str(UsdGeom.GetStageUpAxis(stage))
         if up_axis not in ("Y", "Z"):
             raise ValueError(f"{path}: unsupported upAxis {up_axis!r}")

@@ -426,8 +426,9 @@ class MeshObstacle(Obstacle):
     """A rigid triangle mesh obstacle.
 
     Args:
-        mesh: a `warp_cloth.TriMesh`, a path to an ``.obj`` file or a USD stage (its first
-            mesh, `TriMesh.from_usd`), or ``(vertices, triangles)``.
+        mesh: a `warp_cloth.TriMesh`, a path to an ``.obj`` file or a USD stage (every mesh
+            of the stage as one, in metres: `TriMesh.from_usd` with ``all_meshes``), or
+            ``(vertices, triangles)``.
             Its vertices are the local frame (times ``scale``); spin is about the local origin.
         position, rotation: rest pose of the local origin.
         scale: uniform scale (> 0) applied to the vertices.
@@ -449,7 +450,7 @@ class MeshObstacle(Obstacle):
         if isinstance(mesh, (str, os.PathLike)):
             # a USD stage's first mesh (in metres, in the stage's frame), else an OBJ (a stage
             # was read as an OBJ: "no vertices found")
-            mesh = TriMesh.from_file(mesh)
+            mesh = TriMesh.from_file(mesh, all_meshes=True)
         elif isinstance(mesh, tuple) and len(mesh) == 2:
             mesh = TriMesh(np.asarray(mesh[0], dtype=np.float64), np.asarray(mesh[1]),
                            name=name or self.default_name)
