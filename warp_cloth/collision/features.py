@@ -103,8 +103,9 @@ SOFT_TIP_SHARE = 0.9
 #: estimates take one crease or one radius at a time: a ridge bent by several creases in a row
 #: (15, 21 and 18 degrees within 2 cm on a lumpy 1,280-triangle mesh, none sharp alone) let a
 #: 43 mm cloth diagonal pass 0.2 mm under a mesh vertex with both its vertices 5 mm out (PD and
-#: implicit Euler, 1 of 12 lumpy meshes, 2026-12-07). 0.1 and the rest length: the `mesh`
-#: scene's torus (tube creases of 22.5 degrees: a 44 mm edge comes within 0.7 mm) gains none
+#: implicit Euler, 1 of 12 lumpy meshes, 2026-12-07). 0 (an edge through the surface) and the
+#: rest length: the `mesh` scene's torus (tube creases of 22.5 degrees: a 44 mm edge comes
+#: within 0.7 mm) gains none; 0.1 with the probe's finest sampling kept 150 of its vertices
 PROBE_SHARE = 0.0
 #: an edge is a probe candidate only where its own crease dips a probe edge by this share of the
 #: thickness (``(L/2) sin(theta/2)``): a flatter edge pokes out only with the surface around it,
@@ -118,9 +119,6 @@ PROBE_MIN_CREASE = 0.1
 #: length where it comes within `PROBE_SHARE` of a crossing. 82k triangles: 19.5 s of probing
 #: the whole mesh, 1.6 s now
 PROBE_FINE = 0.25
-
-
-
 #: `dip_probe`'s directions about a candidate (pairs of opposite ones) and distances along each
 PROBE_DIRECTIONS = 16
 PROBE_RADII = tuple(0.25 + 0.5 * k / (11 - 1) for k in range(11))  # 0.25 .. 0.75
@@ -134,7 +132,8 @@ def probe_ends_kernel(mid: wp.uint64, two_sided: int, cpts: wp.array(dtype=wp.ve
     """`dip_probe`'s cloth-vertex places about candidate ``i``: along direction ``k`` of its
     tangent plane, at ``radii[r] * length``, the surface below (a ray down the candidate's
     normal from ``length`` above) and ``gap`` out along that face's normal; valid where the ray
-    meets a front face and nothing of the mesh is nearer than the gap."""
+    meets a front face (either face of an open mesh: ``two_sided``) and nothing of the mesh is
+    nearer than the gap."""
     i, k, r = wp.tid()
     c = cpts[i]
     n = cnrm[i]
@@ -200,11 +199,11 @@ def dip_probe(vertices, triangles, points, normals, length: float, gap: float,
     on opposite sides of it, sampled: `PROBE_DIRECTIONS` directions in its tangent plane, the
     ends at `PROBE_RADII` times ``length`` along them, on the surface a ray down the normal
     meets (once; Warp kernels on ``device``, about 0.4 ms a candidate on this project's CPU:
-    5.7 s for a lumpy 82k-triangle mesh, 1.6 s of it the estimates). Below zero, such an edge passes through the
-    mesh there with both ends outside. The crease and arc estimates of `sharp_features` take
-    one crease or one radius at a time; this measures a ridge bent by several creases in a
-    row. Samples, not a bound. ``two_sided``: an open mesh, whose faces are met from either side
-    (each candidate's normal gives the side probed)."""
+    5.7 s for a lumpy 82k-triangle mesh, 1.6 s of it the estimates). Below zero, such an edge
+    passes through the mesh there with both ends outside. The crease and arc estimates of
+    `sharp_features` take one crease or one radius at a time; this measures a ridge bent by
+    several creases in a row. Samples, not a bound. ``two_sided``: an open mesh, whose faces
+    are met from either side (each candidate's normal gives the side probed)."""
     v = np.asarray(vertices, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)

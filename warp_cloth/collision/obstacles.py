@@ -409,9 +409,9 @@ def orient_closed(vertices, triangles, name: str = "mesh") -> np.ndarray:
                     part.append(g)
                     stack.append(g)
                 elif flip[g] != want:
-                    raise ValueError(f"mesh {name!r} is not orientable (its triangles cannot all be "
-                                     f"wound consistently; e.g. around triangle {g}); a closed "
-                                     "obstacle needs an inside and an outside")
+                    raise ValueError(f"mesh {name!r} is not orientable (its triangles cannot "
+                                     f"all be wound consistently; e.g. around triangle {g}); a "
+                                     "closed obstacle needs an inside and an outside")
         if changed:
             part = np.asarray(part)
             sel = part[flip[part] == 1]
