@@ -924,17 +924,19 @@ def test_an_open_mesh_is_sharp_from_either_side(tmp_path):
     assert st.obstacle_frames == 0 and st.crossing_frames == 0
 
 
-def _lumpy(seed, path):
+def _lumpy(seed, path, amp=None, waves=None):
     """`docs/bench/probes/lumpy_meshes.py`'s family: an icosphere (3 subdivisions) with a
-    smooth random radial relief, written as an OBJ (as ``warp-cloth run mesh --obstacle``)."""
+    smooth random radial relief, written as an OBJ (as ``warp-cloth run mesh --obstacle``);
+    ``amp`` and ``waves`` default to its ``m`` meshes' (``lumpy3``: seed 3, 0.45, 3)."""
     from warp_cloth.mesh import TriMesh
 
     ico = TriMesh.icosphere(3, 1.0)
     V, F = np.asarray(ico.vertices), np.asarray(ico.triangles)
     rng = np.random.default_rng(seed)
     c = rng.normal(size=(6, 3)) * (1 + seed % 2)
-    amp = 0.4 + 0.05 * (seed % 8)
-    r = 0.2 * (1 + amp * np.tanh(sum(np.sin((3 + seed % 3) * V @ ci + k)
+    amp = 0.4 + 0.05 * (seed % 8) if amp is None else amp
+    waves = 3 + seed % 3 if waves is None else waves
+    r = 0.2 * (1 + amp * np.tanh(sum(np.sin(waves * V @ ci + k)
                                      for k, ci in enumerate(c)) / 2))
     with open(path, "w") as out:
         for p in V * r[:, None]:
@@ -942,6 +944,28 @@ def _lumpy(seed, path):
         for tri in F:
             out.write("f %d %d %d\n" % tuple(np.array(tri) + 1))
     return path
+
+
+def test_pd_landing_short_of_its_contact_iterations_runs_again(tmp_path):
+    """Light, stiff cloth (0.1 kg/m^2, 1e5 N/m) landing on a lumpy mesh under projective
+    dynamics: each landing step used all 20 contact iterations with the residual above its
+    bound, and the feature response after the solve stretched the sheet to 12.5 % (0.64 J
+    -> 2.7 J). PD now counts those steps as short (`short_steps_total`), so the frame runs
+    again with twice the steps (`scene.RETRY_STRAIN`), as implicit Euler's did."""
+    from warp_cloth.collision.motion import KeyframePath
+    from warp_cloth.contact_scenes import load_obstacle_mesh, mesh
+
+    tm, position, height = load_obstacle_mesh(_lumpy(3, str(tmp_path / "l3.obj"), 0.45, 3))
+    out = {}
+    for retries in (0, 2):
+        scene = mesh(solver="pd", frames=12, mesh_file=tm, position=position, height=height,
+                     path=KeyframePath([0.0], [[0.0, 0.0, 0.0]]), stiffness=1e5, density=0.1)
+        scene.retries = retries
+        out[retries] = scene.run(quiet=True)
+        assert scene.solver.short_steps_total > 0
+    assert out[0].max_strain > 0.1 and out[0].retried_frames == 0
+    assert out[2].retried_frames >= 1 and out[2].max_strain < 0.05
+    assert out[2].energy_final < 0.5 * out[0].energy_final
 
 
 def test_no_cloth_edge_through_a_ridge_of_several_creases(tmp_path, monkeypatch):

@@ -1013,6 +1013,23 @@ class ProjectiveDynamics(Solver):
     def stats(self, value):  # the base class initialises it; the property reads the device
         pass
 
+    @property
+    def short_steps_total(self) -> int:
+        """Steps since the solver was made that used every contact iteration with the residual
+        still above ``contact_residual`` (and, with a ``tolerance``, steps that ended above it):
+        `Scene` compares it before and after a frame and runs a frame again with twice the
+        steps when one was short and the cloth stretched past `scene.RETRY_STRAIN` in it (host
+        read). Light, stiff cloth (0.1 kg/m^2, 1e5 N/m) landing on a lumpy mesh: 20 contact
+        iterations left each of the landing's steps short and the feature response after the
+        solve stretched it to 12.5 % and put 2.3 J into a 0.64 J sheet; with twice the steps
+        1.6 %."""
+        n = 0
+        if self._coupling is not None and self.contact_iterations > 0:
+            n += int(self._more.numpy()[2])
+        if self.tolerance is not None:
+            n += int(self._short.numpy()[0])
+        return n
+
     def _frame_messages(self) -> list:
         """Steps above ``tolerance`` since the last call, and steps that used every contact
         iteration still above ``contact_residual`` (`Solver.frame_end`; host reads)."""
