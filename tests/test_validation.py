@@ -330,3 +330,34 @@ def test_grid_arguments_are_checked(kwargs, match):
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         TriMesh.grid(**args)
+
+
+def _text_and_bool_cases():
+    from warp_cloth.collision import Box, CollisionStage, MeshObstacle, Plane, Sphere
+    from warp_cloth.contact_scenes import asset_path
+    from warp_cloth.limits import AreaLimit, StrainLimit
+
+    m = wc.contact_scenes.sheet_model(res=4)
+    return [
+        (lambda: Sphere("0.3"), "radius"), (lambda: Sphere(True), "radius"),
+        (lambda: Sphere(0.3, friction=True), "friction"),
+        (lambda: Sphere(0.3, restitution="1"), "restitution"),
+        (lambda: Box("abc"), "half_extents"), (lambda: Box((0.1, "0.2", 0.3)), "half_extents"),
+        (lambda: Box((0.1, 0.2, 0.3), center=(True, 0, 0)), "position"),  # its centre
+        (lambda: MeshObstacle(asset_path("sphere.obj"), scale="2"), "scale"),
+        (lambda: MeshObstacle(asset_path("sphere.obj"), scale=True), "scale"),
+        (lambda: StrainLimit(m, "0", 1.01), "sigma_min"), (lambda: StrainLimit(m, 0, True), "sigma_max"),
+        (lambda: AreaLimit(m, "0.9", 1.1), "a_min"),
+        (lambda: CollisionStage(m, [Plane()], thickness="0.005"), "thickness"),
+        (lambda: CollisionStage(m, [Plane()], friction=True), "friction"),
+        (lambda: CollisionStage(m, [Plane()], restitution="0"), "restitution"),
+    ]
+
+
+@pytest.mark.parametrize("k", range(15))
+def test_numbers_given_as_text_or_bools_are_refused_by_name(k):
+    """A radius of ``"0.3"`` or ``True``, a friction of ``"0.4"``, limit bounds as strings: the
+    constructors converted them with ``float()`` and went on (a sphere of 1 m for ``True``)."""
+    make, name = _text_and_bool_cases()[k]
+    with pytest.raises(ValueError, match=name):
+        make()

@@ -80,7 +80,7 @@ import warp as wp
 
 from .collision.features import inelastic_velocity
 from .tethers import PinStretch, model_tether_anchors, tether_kernel
-from .util import launch, positive_finite
+from .util import launch, not_text_or_bool, positive_finite
 
 wp.set_module_options({"enable_backward": False})  # no gradients here: less to compile
 
@@ -439,6 +439,8 @@ def _check_tolerance(name, tolerance):
 
 
 def _check_bounds(name, lo, hi, lo_name, hi_name) -> tuple[float, float]:
+    not_text_or_bool(lo, f"{name}: {lo_name}")
+    not_text_or_bool(hi, f"{name}: {hi_name}")
     try:
         lo, hi = float(lo), float(hi)
     except (TypeError, ValueError):

@@ -66,10 +66,20 @@ def init_warp(*, verbose: bool = False, device=None) -> None:
         sys.stderr.flush()
 
 
+def not_text_or_bool(value, what: str, kind: str = "a number"):
+    """``value``, unless it is a string, bytes or a bool: a `ValueError` naming ``what``. The
+    numeric checks convert with ``float()``, which took ``"0.3"`` and ``True`` for numbers
+    without a word (a sphere of radius ``True`` m, a friction of ``"0.4"``)."""
+    if isinstance(value, (str, bytes, bool, np.bool_)):
+        raise ValueError(f"{what} must be {kind}, got {value!r}")
+    return value
+
+
 def positive_finite(value, what: str, unit: str = "") -> float:
     """``float(value)`` if it is a positive finite number, else a `ValueError` naming ``what``
     (and its ``unit``, e.g. ``"metres"``)."""
     of = f" of {unit}" if unit else ""
+    not_text_or_bool(value, what, f"a positive number{of}")
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -97,6 +107,7 @@ def nonnegative_finite(value, what: str, unit: str = "") -> float:
     """``float(value)`` if it is a finite number >= 0, else a `ValueError` naming ``what`` (and
     its ``unit``): `positive_finite`'s twin for quantities that may be zero."""
     of = f" of {unit}" if unit else ""
+    not_text_or_bool(value, what, f"a number{of} >= 0")
     try:
         v = float(value)
     except (TypeError, ValueError):

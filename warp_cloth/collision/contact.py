@@ -95,7 +95,7 @@ import math
 import numpy as np
 import warp as wp
 
-from ..util import launch
+from ..util import launch, not_text_or_bool
 from .motion import KIND_MESH, quat_rotate
 from .obstacles import Obstacle, Sphere, cloth_chord, sphere_contact_pad
 
@@ -116,6 +116,7 @@ NEAR_BATCH = 32
 
 
 def _num(name, value, lo=0.0, hi=math.inf, lo_open=False):
+    not_text_or_bool(value, name)
     try:
         value = float(value)
     except (TypeError, ValueError):

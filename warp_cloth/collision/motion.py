@@ -112,7 +112,15 @@ def _slerp(a, b, s):
 
 
 def check_vec3(name, value) -> np.ndarray:
-    a = np.asarray(value, dtype=np.float64).reshape(-1)
+    """``value`` as 3 finite float64 numbers within float32's range, else a `ValueError`
+    naming ``name`` (strings, bools and other non-numbers included)."""
+    raw = np.asarray(value, dtype=object).reshape(-1)
+    if any(isinstance(c, (str, bytes, bool, np.bool_)) for c in raw):
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+    try:
+        a = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}") from None
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
     if np.abs(a).max() > FLOAT32_MAX:  # (the device's float32 would make it inf)

@@ -30,6 +30,7 @@ import os
 
 import numpy as np
 
+from ..util import not_text_or_bool
 from .motion import FLOAT32_MAX
 from .motion import (
     KIND_BOX, KIND_MESH, KIND_PLANE, KIND_SPHERE, Motion, check_quat, check_vec3, quat_between,
@@ -42,6 +43,7 @@ __all__ = ["Obstacle", "Plane", "Sphere", "Box", "MeshObstacle"]
 def _check_coefficient(name, value, upper=None):
     if value is None:
         return None
+    not_text_or_bool(value, name)
     try:
         value = float(value)
     except (TypeError, ValueError):
@@ -274,7 +276,12 @@ class Sphere(Obstacle):
 
     def __init__(self, radius: float, center=(0.0, 0.0, 0.0), *, rotation=(0.0, 0.0, 0.0, 1.0),
                  motion=None, friction=None, restitution=None, name=None):
-        r = float(radius)
+        not_text_or_bool(radius, "radius", "a positive finite number of metres")
+        try:
+            r = float(radius)
+        except (TypeError, ValueError):
+            raise ValueError(f"radius must be a positive finite number of metres, got "
+                             f"{radius!r}") from None
         if not (math.isfinite(r) and 0 < r <= FLOAT32_MAX):
             raise ValueError(f"radius must be a positive finite number of metres (within "
                              f"float32), got {radius}")
@@ -456,7 +463,11 @@ class MeshObstacle(Obstacle):
                            name=name or self.default_name)
         if not isinstance(mesh, TriMesh):
             raise TypeError("mesh must be a TriMesh, an .obj path or (vertices, triangles)")
-        scale = float(scale)
+        not_text_or_bool(scale, "scale", "a positive finite number")
+        try:
+            scale = float(scale)
+        except (TypeError, ValueError):
+            raise ValueError(f"scale must be a positive finite number, got {scale!r}") from None
         if not (math.isfinite(scale) and scale > 0):
             raise ValueError(f"scale must be a positive finite number, got {scale}")
         if scale * float(np.abs(np.asarray(mesh.vertices, dtype=np.float64)).max(initial=0.0)) \
