@@ -925,21 +925,17 @@ def test_an_open_mesh_is_sharp_from_either_side(tmp_path):
 
 
 def _lumpy(seed, path, amp=None, waves=None):
-    """`docs/bench/probes/lumpy_meshes.py`'s family: an icosphere (3 subdivisions) with a
-    smooth random radial relief, written as an OBJ (as ``warp-cloth run mesh --obstacle``);
-    ``amp`` and ``waves`` default to its ``m`` meshes' (``lumpy3``: seed 3, 0.45, 3)."""
-    from warp_cloth.mesh import TriMesh
+    """`docs/bench/probes/lumpy_meshes.py`'s family (`bench.meshes.lumpy_mesh`), written as an
+    OBJ (as ``warp-cloth run mesh --obstacle``); ``amp`` and ``waves`` default to its ``m``
+    meshes' (``lumpy3``: seed 3, 0.45, 3)."""
+    from warp_cloth.bench.meshes import lumpy_mesh
 
-    ico = TriMesh.icosphere(3, 1.0)
-    V, F = np.asarray(ico.vertices), np.asarray(ico.triangles)
-    rng = np.random.default_rng(seed)
-    c = rng.normal(size=(6, 3)) * (1 + seed % 2)
     amp = 0.4 + 0.05 * (seed % 8) if amp is None else amp
     waves = 3 + seed % 3 if waves is None else waves
-    r = 0.2 * (1 + amp * np.tanh(sum(np.sin(waves * V @ ci + k)
-                                     for k, ci in enumerate(c)) / 2))
+    m = lumpy_mesh(seed, amp, waves)
+    F = np.asarray(m.triangles)
     with open(path, "w") as out:
-        for p in V * r[:, None]:
+        for p in np.asarray(m.vertices):
             out.write("v %.6f %.6f %.6f\n" % tuple(p))
         for tri in F:
             out.write("f %d %d %d\n" % tuple(np.array(tri) + 1))

@@ -88,20 +88,30 @@ def _fold(x, hinge: float, degrees: float, height: float):
     return x
 
 
+def lumpy_mesh(seed: int, amp: float, waves: float, subdivisions: int = 3):
+    """A lumpy closed mesh: `TriMesh.icosphere` (``subdivisions``) of radius 0.2 m times
+    ``1 + amp tanh(sum_k sin(waves c_k . p + k) / 2)``, six random directions ``c_k`` (``seed``,
+    scaled by ``1 + seed % 2``). ``docs/bench/probes/lumpy_meshes.py`` writes the family
+    (``lumpy3``: seed 3, 0.45, 3; ``m10``: seed 10, 0.5, 4), the tests and `lumpy_obstacle` use it."""
+    from .. import TriMesh
+
+    ico = TriMesh.icosphere(subdivisions, 1.0)
+    v = np.asarray(ico.vertices)
+    c = np.random.default_rng(seed).normal(size=(6, 3)) * (1 + seed % 2)
+    r = 0.2 * (1 + amp * np.tanh(sum(np.sin(waves * v @ ck + k) for k, ck in enumerate(c)) / 2))
+    return TriMesh(v * r[:, None], np.asarray(ico.triangles), name=f"lumpy{seed}")
+
+
 def lumpy_obstacle():
-    """The ``lumpy`` case's obstacle: an icosphere (3 subdivisions) of 0.2 m mean radius with a
-    smooth random radial relief (``docs/bench/probes/lumpy_meshes.py``'s ``lumpy1``), standing
-    on y = 0, written as exporters do: a tenth of its faces wound the other way and one vertex
-    per face corner (`obstacles.orient_closed` and `weld_seams` undo both; with the faces as
-    given, a sheet dropped on it ended 42 mm inside, 24.5 % strain)."""
+    """The ``lumpy`` case's obstacle: `lumpy_mesh` (``docs/bench/probes/lumpy_meshes.py``'s
+    ``lumpy1``), standing on y = 0, written as exporters do: a tenth of its faces wound the
+    other way and one vertex per face corner (`obstacles.orient_closed` and `weld_seams` undo
+    both; with the faces as given, a sheet dropped on it ended 42 mm inside, 24.5 % strain)."""
     from .. import TriMesh
     from ..collision import MeshObstacle
 
-    ico = TriMesh.icosphere(3, 1.0)
-    v, t = np.asarray(ico.vertices), np.asarray(ico.triangles).copy()
-    c = np.random.default_rng(1).normal(size=(6, 3)) * 2
-    v = v * (0.2 * (1 + 0.35 * np.tanh(sum(np.sin(3 * v @ ci + k)
-                                           for k, ci in enumerate(c)) / 2)))[:, None]
+    lumpy = lumpy_mesh(1, 0.35, 3)
+    v, t = np.asarray(lumpy.vertices), np.asarray(lumpy.triangles).copy()
     flip = np.random.default_rng(0).random(len(t)) < 0.1
     t[flip] = t[flip][:, ::-1]
     v = v - [0.5 * (v[:, 0].min() + v[:, 0].max()), v[:, 1].min(),

@@ -13,7 +13,7 @@ import sys
 
 import numpy as np
 
-from warp_cloth import TriMesh
+from warp_cloth.bench.meshes import lumpy_mesh
 
 sys.argv += [] if len(sys.argv) > 1 else ["."]
 out = sys.argv[1]
@@ -21,14 +21,8 @@ os.makedirs(out, exist_ok=True)
 
 
 def lumpy(sub, seed, amp, waves):
-    """An icosphere of ``sub`` subdivisions, radius 0.2 m times ``1 + amp tanh(...)``: a sum of
-    six sine waves of ``waves`` per radian in random directions (``seed``)."""
-    m = TriMesh.icosphere(sub, 1.0)
-    V = np.asarray(m.vertices)
-    rng = np.random.default_rng(seed)
-    c = rng.normal(size=(6, 3)) * (1 + seed % 2)
-    r = 0.2 * (1 + amp * np.tanh(sum(np.sin(waves * V @ ci + k) for k, ci in enumerate(c)) / 2))
-    return V * r[:, None], np.asarray(m.triangles)
+    m = lumpy_mesh(seed, amp, waves, sub)
+    return np.asarray(m.vertices), np.asarray(m.triangles)
 
 
 def write(name, V, F):
