@@ -1,5 +1,5 @@
-"""The banded Cholesky preconditioner of implicit Euler's Newton solve (`solvers/band.py`,
-``linear="cholesky"``)."""
+"""The banded Cholesky preconditioners (`solvers/band.py`, ``linear="cholesky"``): of implicit
+Euler's Newton solve, and of projective dynamics' constant matrix."""
 
 import numpy as np
 import pytest
@@ -83,7 +83,7 @@ def test_an_indefinite_matrix_falls_back_to_block_jacobi_and_is_counted():
     x = wp.zeros_like(b)
     solver = CholeskyCGSolver(iterations=3, tolerance=None)
     solver.solve(A, b, x)
-    assert solver.fallbacks == 4  # the start and three iterations
+    assert solver.fallbacks == 3  # the start and two iterations (the last z is never used)
     assert np.all(np.isfinite(x.numpy()))
 
 
@@ -114,15 +114,133 @@ def test_newton_with_the_factor_converges_in_few_inner_iterations():
         assert st["inner_iterations"] <= 2 * st["newton_iterations"], st
 
 
-def test_the_stability_map_and_the_pd_solver_name_it():
+def test_the_stability_map_names_it_and_pd_refuses_an_unknown_inner_solver():
     """``implicit-cholesky`` is a stability-map method (implicit Euler with this inner solve);
-    projective dynamics, whose operator has no spring blocks, refuses it by name."""
+    projective dynamics takes ``"cholesky"`` (its own scalar factor) and refuses a name it does
+    not know, listing the ones it does."""
     from warp_cloth.bench.stability import split_method
     from warp_cloth.solvers.projective import ProjectiveDynamics
 
     assert split_method("implicit-cholesky") == ("implicit", {"linear": "cholesky"})
-    with pytest.raises(ValueError, match="linear must be one of"):
-        ProjectiveDynamics(hanging_model(res=4), linear="cholesky")
+    assert ProjectiveDynamics(hanging_model(res=4), linear="cholesky").linear_name == "cholesky"
+    with pytest.raises(ValueError, match="linear must be one of.*cholesky"):
+        ProjectiveDynamics(hanging_model(res=4), linear="lu")
+
+
+# ------------------------------------------------- projective dynamics' constant matrix
+def _pd_system(res=6, **kw):
+    """The PD operator of a pinned hanging sheet with quadratic bending (folded into the rows)
+    at one step of 1/30 s, a random right-hand side on the free vertices, and the exact
+    solution from the dense scalar matrix (float64)."""
+    from warp_cloth.solvers.projective import ProjectiveDynamics
+
+    model = hanging_model(res=res, stiffness=1e5, bending="quadratic", bend_stiffness=1e-2, **kw)
+    pd = ProjectiveDynamics(model).prepare(1 / 30)
+    A = pd.operator
+    free = model.inverse_masses > 0
+    rng = np.random.default_rng(3)
+    bh = (rng.standard_normal((model.num_vertices, 3)) * free[:, None]).astype(np.float32)
+    S = A.dense_scalar()
+    exact = np.zeros((model.num_vertices, 3))
+    exact[free] = np.linalg.solve(S[np.ix_(free, free)], bh[free].astype(np.float64))
+    return model, pd, A, wp.array(bh, dtype=wp.vec3), exact
+
+
+def test_pd_scalar_factor_solves_the_constant_matrix_in_one_iteration():
+    """Springs, masses and quadratic bending all lie in the scalar band: one preconditioned CG
+    iteration solves the global step to float32 accuracy (the three components share the
+    factor), where block-Jacobi CG is still far off after 20."""
+    from warp_cloth.solvers.linear import CGSolver
+
+    model, pd, A, b, exact = _pd_system()
+    x = wp.zeros_like(b)
+    solver = CholeskyCGSolver(iterations=1, tolerance=None)
+    solver.solve(A, b, x)
+    err = np.abs(x.numpy() - exact).max() / np.abs(exact).max()
+    assert err < 1e-5, err
+    assert solver.fallbacks == 0
+    assert solver.factor.width <= 2 * 7  # a 7 x 7 grid in its own order: two rows
+    y = wp.zeros_like(b)
+    CGSolver(iterations=20, tolerance=None).solve(A, b, y)
+    assert np.abs(y.numpy() - exact).max() / np.abs(exact).max() > 100 * err
+
+
+def test_pd_scalar_factor_keeps_a_shuffled_mesh_narrow():
+    """The same sheet with its vertices numbered at random: the factor takes reverse
+    Cuthill-McKee's order (band about two rows, not the vertex count) and still solves it."""
+    from warp_cloth.model import ClothModel
+    from warp_cloth.solvers.projective import ProjectiveDynamics
+
+    base = hanging_model(res=8)
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(base.num_vertices)  # new vertex k is old vertex perm[k]
+    inv = np.argsort(perm)
+    mesh = base.mesh.__class__(base.mesh.vertices[perm], inv[base.mesh.triangles])
+    model = ClothModel(mesh, density=0.15, stretch_stiffness=1e3, pins=inv[base.pins])
+    pd = ProjectiveDynamics(model).prepare(1 / 60)
+    A = pd.operator
+    free = model.inverse_masses > 0
+    bh = (rng.standard_normal((model.num_vertices, 3)) * free[:, None]).astype(np.float32)
+    S = A.dense_scalar()
+    exact = np.zeros((model.num_vertices, 3))
+    exact[free] = np.linalg.solve(S[np.ix_(free, free)], bh[free].astype(np.float64))
+    x = wp.zeros(model.num_vertices, dtype=wp.vec3)
+    solver = CholeskyCGSolver(iterations=1, tolerance=None)
+    solver.solve(A, wp.array(bh, dtype=wp.vec3), x)
+    assert solver.factor.width <= 3 * 9, solver.factor.width
+    assert np.abs(x.numpy() - exact).max() / np.abs(exact).max() < 1e-5
+
+
+def test_pd_defaults_to_the_factor_without_contact_and_its_step_is_the_direct_one():
+    """Without a collision stage PD's default inner solve on the CPU is the factor, one
+    iteration: its step is the host dense solve's (``direct=True``) to float32 rounding; with
+    a collision stage the default stays CG x 20; a band wider than `CHOLESKY_MAX_WIDTH` gets
+    Chebyshev."""
+    import warp_cloth.solvers.projective as pdm
+    from warp_cloth.collision.stage import CollisionStage
+
+    model = hanging_model(res=6, stiffness=1e4, bending="quadratic", bend_stiffness=1e-2)
+    pd = pdm.ProjectiveDynamics(model)
+    assert (pd.linear_name, pd.linear_iterations) == ("cholesky", 1)
+    ref = pdm.ProjectiveDynamics(model, direct=True)
+    a, b = model.state(), model.state()
+    for _ in range(5):
+        pd.step(a, 1 / 60)
+        ref.step(b, 1 / 60)
+    moved = np.abs(b.positions() - model.mesh.vertices).max()
+    assert moved > 1e-3
+    assert np.abs(a.positions() - b.positions()).max() < 1e-5 * max(moved, 1.0)
+    assert pd.stats["linear"] == "cholesky" and pd.capturable
+    staged = pdm.ProjectiveDynamics(model, collision=CollisionStage(model, [],
+                                                                    self_collision=True))
+    assert (staged.linear_name, staged.linear_iterations) == ("cg", 20)
+    old = pdm.CHOLESKY_MAX_WIDTH
+    pdm.CHOLESKY_MAX_WIDTH = 3
+    try:
+        wide = pdm.ProjectiveDynamics(model)
+        assert (wide.linear_name, wide.linear_iterations) == ("chebyshev", 20)
+    finally:
+        pdm.CHOLESKY_MAX_WIDTH = old
+    assert pdm.ProjectiveDynamics(model, linear="cholesky", linear_iterations=3
+                                  ).linear_iterations == 3
+
+
+def test_pd_band_too_large_is_refused_with_the_way_out():
+    """``linear="cholesky"`` on a matrix whose band would not fit: a clear error naming
+    linear='cg', at the first step, before anything moves."""
+    import warp_cloth.solvers.band as band
+    from warp_cloth.solvers.projective import ProjectiveDynamics
+
+    model = hanging_model(res=6)
+    pd = ProjectiveDynamics(model, linear="cholesky")
+    old = band.MAX_BAND_ENTRIES
+    band.MAX_BAND_ENTRIES = 10
+    try:
+        s = model.state()
+        with pytest.raises(ValueError, match="linear='cg'"):
+            pd.step(s, 1 / 60)
+    finally:
+        band.MAX_BAND_ENTRIES = old
 
 
 def test_an_indefinite_newton_matrix_is_reported_by_the_solver():

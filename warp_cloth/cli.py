@@ -187,7 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="N/m (springs) or N m (dihedral, quadratic)")
     r.add_argument("--damping", type=_nonneg_float, default=None, help="velocity damping, 1/s")
     r.add_argument("--linear", choices=["jacobi", "chebyshev", "cg", "cholesky"], default=None,
-                   help="inner linear solver (implicit, pd; cholesky: implicit only)")
+                   help="inner linear solver (implicit, pd; cholesky: CG with a banded Cholesky factor "
+                        "of the matrix, pd's default on the CPU without contact)")
     r.add_argument("--newton-iterations", type=_positive_int, default=None, help="implicit")
     r.add_argument("--initial-guess", choices=["inertial", "start", "velocity", "auto"],
                    default=None,

@@ -106,9 +106,10 @@ def main(argv=None) -> int:
         ("pd chebyshev x20 + outer Chebyshev 0.9", dict(linear="chebyshev", linear_iterations=20,
                                                         outer_rho=0.9)),
         ("pd direct (host dense inverse)", dict(direct=True)),
+        ("pd cholesky x1 (banded factor)", dict(linear="cholesky", linear_iterations=1)),
     ]
     if args.quick:
-        pd_configs = [pd_configs[1], pd_configs[3], pd_configs[5]]
+        pd_configs = [pd_configs[1], pd_configs[3], pd_configs[5], pd_configs[6]]
     newton_ks = [1, 2, 5, 10, 20]
 
     summary = []

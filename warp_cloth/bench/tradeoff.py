@@ -87,9 +87,10 @@ def ladder(methods, base_substeps: int, stiffness: float, quick: bool):
             out.append(Config("pbd", opts, substeps=sub))
         out.append(Config("pbd", {"iterations": 10}, substeps=1, strain_limit=lim))
     if "pd" in methods:
-        grid = [(10, "chebyshev", 1), (10, "cg", 1)] if quick else [
+        grid = [(10, "chebyshev", 1), (10, "cg", 1), (10, "cholesky", 1)] if quick else [
             (5, "chebyshev", 1), (10, "chebyshev", 1), (20, "chebyshev", 1), (40, "chebyshev", 1),
-            (10, "chebyshev", 4), (10, "cg", 1), (10, "jacobi", 1)]
+            (10, "chebyshev", 4), (10, "cg", 1), (10, "jacobi", 1), (10, "cholesky", 1),
+            (20, "cholesky", 1), (10, "cholesky", 4)]
         for it, lin, sub in grid:
             out.append(Config("pd", {"iterations": it, "linear": lin}, substeps=sub))
         out.append(Config("pd", {"iterations": 10, "linear": "chebyshev"}, substeps=1, strain_limit=lim))

@@ -464,7 +464,8 @@ class CGSolver(_Base):
             launch(_cg_update_kernel, th,
                    [x, self.r, self.z, self.p, self.ap, A.diag_inv, A.free, rz, pap, rr, k, th],
                    device=d)
-            self._precondition(A, rz, k + 1)
+            if k + 1 < iters or check is not None:  # (the last z is never used)
+                self._precondition(A, rz, k + 1)
             if check is not None and ((k + 1) % check == 0 or k + 1 == iters):
                 res = math.sqrt(float(rr.numpy()[k])) / bn
                 if tol is not None and res < tol:
