@@ -189,6 +189,17 @@ def test_pd_scalar_factor_keeps_a_shuffled_mesh_narrow():
     solver.solve(A, wp.array(bh, dtype=wp.vec3), x)
     assert solver.factor.width <= 3 * 9, solver.factor.width
     assert np.abs(x.numpy() - exact).max() / np.abs(exact).max() < 1e-5
+    assert pd.linear_name == "cholesky" and pd._band_width == solver.factor.width
+    # above `RCM_MAX_VERTICES` the default choice takes the mesh's own order (wide here)
+    import warp_cloth.solvers.projective as pdm
+
+    old = pdm.RCM_MAX_VERTICES
+    pdm.RCM_MAX_VERTICES = 10
+    try:
+        big = ProjectiveDynamics(model)
+        assert big.linear_name == "cholesky" and big._band_width > 2 * solver.factor.width
+    finally:
+        pdm.RCM_MAX_VERTICES = old
 
 
 def test_pd_defaults_to_the_factor_without_contact_and_its_step_is_the_direct_one():
@@ -211,6 +222,7 @@ def test_pd_defaults_to_the_factor_without_contact_and_its_step_is_the_direct_on
     assert moved > 1e-3
     assert np.abs(a.positions() - b.positions()).max() < 1e-5 * max(moved, 1.0)
     assert pd.stats["linear"] == "cholesky" and pd.capturable
+    assert pd.linear.factor.width == pd._band_width  # the order the choice found
     staged = pdm.ProjectiveDynamics(model, collision=CollisionStage(model, [],
                                                                     self_collision=True))
     assert (staged.linear_name, staged.linear_iterations) == ("cg", 20)

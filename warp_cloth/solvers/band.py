@@ -368,10 +368,14 @@ class ScalarBandFactor:
         n, d = A.n, A.device
         offsets, cols, w = A.csr_host
         rows = np.repeat(np.arange(n), np.diff(offsets.astype(np.int64)))
-        self.perm, self.width = min(
-            ((p, band_width(p, rows, cols)) for p in (np.arange(n, dtype=np.int32),
-                                                      rcm_order(n, rows, cols))),
-            key=lambda pw: pw[1])
+        given = getattr(A, "band_order", None)  # (order, width) its solver found
+        if given is not None:
+            self.perm, self.width = np.asarray(given[0], dtype=np.int32), int(given[1])
+        else:
+            self.perm, self.width = min(
+                ((p, band_width(p, rows, cols)) for p in (np.arange(n, dtype=np.int32),
+                                                          rcm_order(n, rows, cols))),
+                key=lambda pw: pw[1])
         self.vertex_width = self.width
         self.rows = n
         if n * (self.width + 1) > MAX_BAND_ENTRIES:

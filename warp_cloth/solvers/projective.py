@@ -103,6 +103,10 @@ PD_LINEAR = (*LINEAR_SOLVERS, "cholesky")
 #: multiply-adds, a Chebyshev-20 solve about ``20 x`` a product over the rows; at b = 200
 #: (a 100 x 100 grid with quadratic bending) the factorisation, ``n b^2 / 2``, is ~2e8
 CHOLESKY_MAX_WIDTH = 200
+#: ... and the largest mesh on which that choice also tries reverse Cuthill-McKee's order (a
+#: host breadth-first search: 0.5-0.8 s at 16,641 vertices, 3.7 s at 66,049, where a square
+#: sheet's band is past the bound anyway); larger meshes are taken in their own order
+RCM_MAX_VERTICES = 20000
 
 
 # ----------------------------------------------------------------------------------- kernels
@@ -715,6 +719,7 @@ class ProjectiveDynamics(Solver):
         self._linear_iterations_given = (None if linear_iterations is None
                                          else int(linear_iterations))
         self._band_width = None  # the constant matrix's band, vertices (`linear_name`)
+        self._band_order = None  # (order, width) found for it
         #: with a collision stage and the default inner solver: the factor's exact solve for
         #: the steps whose records hold no contact entry (`_global_solve`), and their flag
         self._free_linear = None
@@ -789,8 +794,10 @@ class ProjectiveDynamics(Solver):
         return "chebyshev"
 
     def _narrow_band(self) -> bool:
-        """Whether the constant matrix's band (the mesh's own order or reverse Cuthill-McKee,
-        over springs and folded terms) is at most `CHOLESKY_MAX_WIDTH` vertices wide (host, once)."""
+        """Whether the constant matrix's band (the mesh's own order, or reverse Cuthill-McKee
+        on meshes up to `RCM_MAX_VERTICES` vertices, over springs and folded terms) is at most
+        `CHOLESKY_MAX_WIDTH` vertices wide (host, once; the order found is the factor's,
+        `band.ScalarBandFactor`)."""
         if self._band_width is None:
             from .band import band_width, rcm_order
 
@@ -805,8 +812,12 @@ class ProjectiveDynamics(Solver):
             r = np.concatenate(rows).astype(np.int64)
             c = np.concatenate(cols).astype(np.int64)
             n = m.num_vertices
-            self._band_width = min(band_width(np.arange(n, dtype=np.int32), r, c),
-                                   band_width(rcm_order(n, r, c), r, c))
+            orders = [np.arange(n, dtype=np.int32)]
+            if n <= RCM_MAX_VERTICES:
+                orders.append(rcm_order(n, r, c))
+            self._band_order = min(((p, band_width(p, r, c)) for p in orders),
+                                   key=lambda pw: pw[1])
+            self._band_width = self._band_order[1]
         return self._band_width <= CHOLESKY_MAX_WIDTH
 
     @property
@@ -858,6 +869,9 @@ class ProjectiveDynamics(Solver):
             self.operator = PDSystemOperator(self.model, 1.0 / (dt * dt), self.matrix_terms)
         else:
             self.operator.update(1.0 / (dt * dt))
+        self.linear_name  # (the default may look for the band's order: `_narrow_band`)
+        if self._band_order is not None:  # the factor's order, found already
+            self.operator.band_order = self._band_order
         if self.direct:
             S = self.operator.dense_scalar()
             f = self._free_idx
