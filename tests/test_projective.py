@@ -408,6 +408,14 @@ def test_pd_contact_free_steps_take_the_exact_solve_and_contact_steps_cg():
     assert int(staged._free_flag.numpy()[0]) == 1
     assert np.abs(a.positions() - b.positions()).max() < 1e-6
     assert np.abs(c.positions() - a.positions()).max() > 1e-3
+    # a solver whose stage is taken away between steps (`bench contact`'s equal-work variant)
+    # solves with its CG alone, whatever the flag its last contact step left
+    staged.collision = None
+    cg_alone = ProjectiveDynamics(m, linear="cg")
+    b2, c2 = b.clone(), b.clone()
+    staged.step(b2, 1 / 60)
+    cg_alone.step(c2, 1 / 60)
+    assert np.abs(b2.positions() - c2.positions()).max() < 1e-7
     low = ProjectiveDynamics(m, collision=CollisionStage(m, [Plane(point=(0.0, 0.99, 0.0))]))
     s = m.state()
     for _ in range(30):

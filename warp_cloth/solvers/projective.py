@@ -721,7 +721,7 @@ class ProjectiveDynamics(Solver):
         self._band_width = None  # the constant matrix's band, vertices (`linear_name`)
         self._band_order = None  # (order, width) found for it
         #: with a collision stage and the default inner solver: the factor's exact solve for
-        #: the steps whose records hold no contact entry (`_global_solve`), and their flag
+        #: the iterations with no contact block in the matrix (`_global_solve`), and their flag
         self._free_linear = None
         self._free_flag = wp.zeros(1, dtype=wp.int32, device=model.device)
         self.linear_tolerance = linear_tolerance
@@ -897,12 +897,12 @@ class ProjectiveDynamics(Solver):
             self._free_linear._alloc(self.operator)
             self._free_linear._prepare(self.operator)
 
-    def _global_solve(self) -> None:
+    def _global_solve(self, cc=None) -> None:
         """``dx`` from the global system: the inner solver, or, in an iteration whose local
         step put no contact block in the matrix (a device flag, `_mark_free`: a conditional
         node when recorded), the exact banded solve (`_free_linear`): the matrix is then the
         constant one. Measured: module docstring."""
-        if self._free_linear is None:
+        if self._free_linear is None or cc is None:  # (no coupling: nothing sets the flag)
             self._last_info = self.linear.solve(self.operator, self.b, self.dx)
             return
         wp.capture_if(self._free_flag, on_true=self._solve_free, on_false=self._solve_contact)
@@ -978,7 +978,7 @@ class ProjectiveDynamics(Solver):
             if self.direct:
                 self._solve_direct(cc)
             else:
-                self._global_solve()
+                self._global_solve(cc)
             launch(pd_update_kernel, n,
                    [state.x, self.dx, self.x0, state.v, m.inv_mass, decay, 1.0 / dt,
                     1 if k == K - 1 else 0, self._omegas[k], self.x_prev], device=d)
@@ -1089,7 +1089,7 @@ class ProjectiveDynamics(Solver):
     def _contact_iteration(self, state, dt, cc, guard=False):
         """One more global step and update (velocity set), then `_evaluate`."""
         m = self.model
-        self._global_solve()
+        self._global_solve(cc)
         launch(pd_update_kernel, m.num_vertices,
                [state.x, self.dx, self.x0, state.v, m.inv_mass, math.exp(-m.damping * dt),
                 1.0 / dt, 1, 1.0, self.x_prev], device=self.device)
