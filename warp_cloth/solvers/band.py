@@ -189,6 +189,19 @@ def band_factor_kernel(band: wp.array2d(dtype=wp.float64), rows: int, width: int
                     band[r, 0] = wp.float64(1.0)
 
 
+@wp.func
+def jacobi_fallback(n: int, dinv: wp.array(dtype=wp.mat33), r: wp.array(dtype=wp.vec3),
+                    z: wp.array(dtype=wp.vec3), fallbacks: wp.array(dtype=int)):
+    """Block Jacobi ``z = D^-1 r`` where a factorisation failed, counted; returns ``r . z``."""
+    fallbacks[0] = fallbacks[0] + 1
+    acc = wp.float64(0.0)
+    for i in range(n):
+        zi = dinv[i] * r[i]
+        z[i] = zi
+        acc = acc + wp.float64(wp.dot(r[i], zi))
+    return acc
+
+
 @wp.kernel
 def band_solve_kernel(band: wp.array2d(dtype=wp.float64), rows: int, width: int,
                       perm: wp.array(dtype=wp.int32), free: wp.array(dtype=float),
@@ -201,12 +214,7 @@ def band_solve_kernel(band: wp.array2d(dtype=wp.float64), rows: int, width: int,
     n = rows // 3
     acc = wp.float64(0.0)
     if failed[0] != 0:
-        fallbacks[0] = fallbacks[0] + 1
-        for i in range(n):
-            zi = dinv[i] * r[i]
-            z[i] = zi
-            acc = acc + wp.float64(wp.dot(r[i], zi))
-        rz[slot] = acc
+        rz[slot] = jacobi_fallback(n, dinv, r, z, fallbacks)
         return
     for row in range(rows):
         p = row // 3
@@ -312,12 +320,7 @@ def band3_solve_kernel(band: wp.array2d(dtype=wp.float64), upper: wp.array2d(dty
     two partial sums (``upper``: the factor's columns as rows)."""
     acc = wp.float64(0.0)
     if failed[0] != 0:
-        fallbacks[0] = fallbacks[0] + 1
-        for i in range(n):
-            zi = dinv[i] * r[i]
-            z[i] = zi
-            acc = acc + wp.float64(wp.dot(r[i], zi))
-        rz[slot] = acc
+        rz[slot] = jacobi_fallback(n, dinv, r, z, fallbacks)
         return
     zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     for p in range(n):  # L y = P r
