@@ -65,9 +65,12 @@ about 1e4, and PD's matrix charges the slack transverse directions the full ``k`
 32 x 32 hanging scene with one step per frame, 10 iterations per step give a max edge strain of
 5.4 % (direct), 7.6 % (Chebyshev-100) and 25 % (Chebyshev-20): an under-converged PD step is
 softer than the material. Smaller steps fix that more cheaply than more iterations (M/dt^2 grows
-as 1/dt^2 and PD converges faster): the default, 3 steps per frame of 10 x Chebyshev-20, gives
-4.9 % at 19.8 ms/frame there, against 7.6 % at 30 ms for 1 step of 10 x Chebyshev-100 (same run,
-2 s of the default hanging scene).
+as 1/dt^2 and PD converges faster): 3 steps per frame of 10 x Chebyshev-20 gave 4.9 % at 19.8
+ms/frame there, against 7.6 % at 30 ms for 1 step of 10 x Chebyshev-100 (same run, 2 s of the
+default hanging scene). With the banded factor's exact global steps (the default without a
+collision stage since 2026-12-07; the same scene without self-collision, 2 s, one run): 3 steps
+3.53 % at 5.5 ms/frame (Chebyshev-20 4.89 % at 19.1, Chebyshev-100 3.57 % at 84.2), 1 step
+5.36 % at 1.8 ms/frame (Chebyshev-100 7.62 % at 35.6).
 
 Limitations: the matrix is built for one ``dt`` (rebuilt on the host when ``dt`` changes);
 Chebyshev needs ``rho`` below the true spectral radius bound (an overestimate diverges; the
