@@ -237,6 +237,28 @@ def test_pd_defaults_to_the_factor_without_contact_and_its_step_is_the_direct_on
                                   ).linear_iterations == 3
 
 
+def test_pd_factor_without_a_pivot_falls_back_and_says_so():
+    """A constant matrix with a non-positive pivot (one vertex's diagonal made negative before
+    the factorisation): the applications fall back to block Jacobi (finite steps), counted in
+    the solver's stats and reported by its frame report; nothing silent."""
+    from warp_cloth.solvers.projective import ProjectiveDynamics
+
+    model = hanging_model(res=4)
+    pd = ProjectiveDynamics(model).prepare(1 / 60)
+    i = int(np.flatnonzero(model.inverse_masses > 0)[0])
+    pd.operator.laplacian_diag[i] = -1e9  # read by the factor at its first solve
+    s = model.state()
+    pd.step(s, 1 / 60)
+    assert pd.stats["factor_fallbacks"] == 10  # one application a global step
+    msgs = pd.frame_end()
+    assert any("fell back to block Jacobi" in m for m in msgs), msgs
+    assert not any("fell back" in m for m in pd.frame_end())  # said once
+    assert np.all(np.isfinite(s.positions()))
+    good = ProjectiveDynamics(model)
+    good.step(model.state(), 1 / 60)
+    assert good.stats["factor_fallbacks"] == 0 and good.frame_end() == []
+
+
 def test_pd_band_too_large_is_refused_with_the_way_out():
     """``linear="cholesky"`` on a matrix whose band would not fit: a clear error naming
     linear='cg', at the first step, before anything moves."""

@@ -727,6 +727,7 @@ class ProjectiveDynamics(Solver):
         #: the iterations with no contact block in the matrix (`_global_solve`), and their flag
         self._free_linear = None
         self._free_flag = wp.zeros(1, dtype=wp.int32, device=model.device)
+        self._fallbacks_seen = 0  # (`_frame_messages`)
         self.linear_tolerance = linear_tolerance
         self.alpha = float(alpha)
         self.rho = rho
@@ -1133,6 +1134,7 @@ class ProjectiveDynamics(Solver):
             "iterations": self.iterations,
             "inner_iterations": inner,
             "linear": "direct" if self.direct else self.linear_name,
+            "factor_fallbacks": self._factor_fallbacks(),
             "objective": obj.tolist(),
             "gradient_norm": np.sqrt(self._gradient.numpy()[:self.iterations]).tolist(),
             "linear_residual": info.get("residual", float("nan")),
@@ -1171,10 +1173,22 @@ class ProjectiveDynamics(Solver):
             n += int(self._short.numpy()[0])
         return n
 
+    def _factor_fallbacks(self) -> int:
+        """Banded-factor applications that fell back to block Jacobi over the run (a matrix
+        with a non-positive pivot: not positive definite; host read)."""
+        return sum(getattr(lin, "fallbacks", 0) for lin in (self.linear, self._free_linear)
+                   if lin is not None and getattr(lin, "name", "") == "cholesky")
+
     def _frame_messages(self) -> list:
         """Steps above ``tolerance`` since the last call, and steps that used every contact
         iteration still above ``contact_residual`` (`Solver.frame_end`; host reads)."""
         out = []
+        n = self._factor_fallbacks()
+        new, self._fallbacks_seen = n - self._fallbacks_seen, n
+        if new > 0:
+            out.append(f"pd: {new} banded-factor application(s) fell back to block Jacobi: its "
+                       "constant matrix had no Cholesky factor (not positive definite: a "
+                       "negative stiffness or mass?)")
         if self._coupling is not None and self.contact_iterations > 0:
             n = int(self._more.numpy()[2])
             new, self._more_seen = n - self._more_seen, n
