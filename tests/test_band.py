@@ -233,6 +233,12 @@ def test_pd_defaults_to_the_factor_without_contact_and_its_step_is_the_direct_on
         assert (wide.linear_name, wide.linear_iterations) == ("chebyshev", 20)
     finally:
         pdm.CHOLESKY_MAX_WIDTH = old
+    old = pdm.CHOLESKY_MAX_ENTRIES
+    pdm.CHOLESKY_MAX_ENTRIES = model.num_vertices * 4  # a band of 3: too many entries
+    try:
+        assert pdm.ProjectiveDynamics(model).linear_name == "chebyshev"
+    finally:
+        pdm.CHOLESKY_MAX_ENTRIES = old
     assert pdm.ProjectiveDynamics(model, linear="cholesky", linear_iterations=3
                                   ).linear_iterations == 3
 

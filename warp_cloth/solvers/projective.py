@@ -106,6 +106,9 @@ PD_LINEAR = (*LINEAR_SOLVERS, "cholesky")
 #: multiply-adds, a Chebyshev-20 solve about ``20 x`` a product over the rows; at b = 200
 #: (a 100 x 100 grid with quadratic bending) the factorisation, ``n b^2 / 2``, is ~2e8
 CHOLESKY_MAX_WIDTH = 200
+#: ... and the most band entries it may take (float64; the factor keeps two copies: 64 MB
+#: at this bound, e.g. 20,000 vertices 200 wide)
+CHOLESKY_MAX_ENTRIES = 1 << 22
 #: ... and the largest mesh on which that choice also tries reverse Cuthill-McKee's order (a
 #: host breadth-first search: 0.5-0.8 s at 16,641 vertices, 3.7 s at 66,049, where a square
 #: sheet's band is past the bound anyway); larger meshes are taken in their own order
@@ -560,7 +563,8 @@ class ProjectiveDynamics(Solver):
             exact in one iteration where no contact term is in the matrix), warm-started from
             the current iterate; ``None`` (default): ``"cg"`` when the solver has a collision
             stage, else ``"cholesky"`` on the CPU when the mesh's band is at most
-            `CHOLESKY_MAX_WIDTH` vertices wide, else ``"chebyshev"`` (`linear_name`).
+            `CHOLESKY_MAX_WIDTH` vertices wide and holds at most `CHOLESKY_MAX_ENTRIES`
+            entries, else ``"chebyshev"`` (`linear_name`).
         linear_iterations: inner iterations per global step (>= 1); ``None`` (default): 1 for
             ``"cholesky"`` without a collision stage (the exact solve), 4 with one (its contact
             terms are not in the factor), 20 for the others.
@@ -822,7 +826,8 @@ class ProjectiveDynamics(Solver):
             self._band_order = min(((p, band_width(p, r, c)) for p in orders),
                                    key=lambda pw: pw[1])
             self._band_width = self._band_order[1]
-        return self._band_width <= CHOLESKY_MAX_WIDTH
+        return (self._band_width <= CHOLESKY_MAX_WIDTH
+                and self.model.num_vertices * (self._band_width + 1) <= CHOLESKY_MAX_ENTRIES)
 
     @property
     def linear_iterations(self) -> int:
