@@ -788,8 +788,11 @@ class ProjectiveDynamics(Solver):
         (its contact blocks change the matrix after Chebyshev's spectral radius was measured
         on the contact-free one: with it, the under-converged steps gained up to 0.02 J a
         frame on impact in the drape scene, 0.09 J with ``rho_safety=0.9``; CG needs no
-        estimate and lowers the energy norm of the error every iteration) and
-        ``"chebyshev"`` without (faster to the same accuracy there: ``docs/bench``)."""
+        estimate and lowers the energy norm of the error every iteration; its iterations with
+        no contact block take the factor, `_hybrid`) and without one ``"cholesky"`` on the CPU
+        where the band is narrow enough (`_narrow_band`: the exact solve, 2.4 times cheaper
+        an iteration than Chebyshev-20 on the 64 x 32 sheet, ``docs/bench/pd.md``), else
+        ``"chebyshev"`` (faster than CG to the same accuracy there)."""
         if self._linear_given is not None:
             return self._linear_given
         if self.collision is not None:
@@ -898,13 +901,20 @@ class ProjectiveDynamics(Solver):
             opts["delay"] = self.delay
         self.linear = make_linear_solver(self.linear_name, **opts)
         self._free_linear = None
-        if (self._linear_given is None and self.collision is not None and self.device.is_cpu
-                and self.linear_tolerance is None and self._narrow_band()):
+        if self._hybrid():
             # set up (allocations, the factor) now: the first contact-free step may be
             # recorded in a graph
             self._free_linear = make_linear_solver("cholesky", iterations=1, tolerance=None)
             self._free_linear._alloc(self.operator)
             self._free_linear._prepare(self.operator)
+
+    def _hybrid(self) -> bool:
+        """Whether the default inner solver with a collision stage (CG) leaves the iterations
+        with no contact block to the factor (`_global_solve`): on the CPU, with a narrow band,
+        without a user's inner solver or inner tolerance."""
+        return (self._linear_given is None and self.collision is not None
+                and self.device.is_cpu and self.linear_tolerance is None
+                and self._narrow_band())
 
     def _global_solve(self, cc=None) -> None:
         """``dx`` from the global system: the inner solver, or, in an iteration whose local
@@ -1219,9 +1229,7 @@ class ProjectiveDynamics(Solver):
 
     def describe(self) -> str:
         lin = "direct" if self.direct else f"{self.linear_name} x{self.linear_iterations}"
-        if self._free_linear is not None or (
-                not self.direct and self._linear_given is None and self.collision is not None
-                and self.device.is_cpu and self.linear_tolerance is None and self._narrow_band()):
+        if not self.direct and (self._free_linear is not None or self._hybrid()):
             lin += "; cholesky x1 in contact-free steps"
         sw = (f", {self.smoothing_sweeps} sweeps" if self._smooth_on and (
             self.collision is None or self.collision.contact is None) else "")
