@@ -378,7 +378,7 @@ def test_default_inner_solver_is_cg_with_a_collision_stage():
     pd.step(st, 1e-3)
     assert pd.linear_name == "cg" and "cg" in type(pd.linear).__name__.lower()
     assert type(pd._free_linear).__name__ == "CholeskyCGSolver"
-    assert "cg x20; cholesky x1 in contact-free steps" in pd.describe()
+    assert "cg x20; cholesky x1 in contact-free iterations" in pd.describe()
     kept = ProjectiveDynamics(m, linear="chebyshev", collision=CollisionStage(m, [Plane()]))
     assert kept.linear_name == "chebyshev"
     kept.step(m.state(), 1e-3)

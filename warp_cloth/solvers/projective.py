@@ -1230,7 +1230,7 @@ class ProjectiveDynamics(Solver):
     def describe(self) -> str:
         lin = "direct" if self.direct else f"{self.linear_name} x{self.linear_iterations}"
         if not self.direct and (self._free_linear is not None or self._hybrid()):
-            lin += "; cholesky x1 in contact-free steps"
+            lin += "; cholesky x1 in contact-free iterations"
         sw = (f", {self.smoothing_sweeps} sweeps" if self._smooth_on and (
             self.collision is None or self.collision.contact is None) else "")
         return f"pd ({self.iterations} iterations, {lin}{sw})"
