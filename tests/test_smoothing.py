@@ -236,6 +236,32 @@ def test_cli_smoothing_sweeps(tmp_usd, capsys):
         assert "smoothing" in capsys.readouterr().err
 
 
+def test_cli_linear_iterations(tmp_usd, capsys):
+    """``--linear-iterations N`` reaches implicit Euler's and PD's inner solver (the method
+    string), with ``--linear`` too; a count below 1 or a solver without an inner solve is
+    refused (exit 2, named)."""
+    import json
+
+    from warp_cloth.cli import main
+
+    base = ["run", "hanging", "--res", "4", "--frames", "2", "--quiet", "--json",
+            "--self-collision", "off"]
+    assert main([*base, "--solver", "pd", "--out", tmp_usd]) == 0
+    assert json.loads(capsys.readouterr().out)["method"] == "pd (10 iterations, cholesky x1)"
+    assert main([*base, "--solver", "pd", "--linear", "cg", "--linear-iterations", "7",
+                 "--out", tmp_usd]) == 0
+    assert json.loads(capsys.readouterr().out)["method"] == "pd (10 iterations, cg x7)"
+    assert main([*base, "--solver", "implicit", "--linear-iterations", "3", "--out",
+                 tmp_usd]) == 0
+    capsys.readouterr()
+    for bad in (["--solver", "pd", "--linear-iterations", "0"],
+                ["--solver", "pbd", "--linear-iterations", "2"]):
+        with pytest.raises(SystemExit) as e:
+            main([*base, *bad, "--out", tmp_usd + ".bad.usd"])
+        assert e.value.code == 2
+        assert "linear-iterations" in capsys.readouterr().err
+
+
 def test_projective_dynamics_sweeps_lower_f_and_keep_its_velocity_rule():
     """Projective dynamics ends its iterations with the sweeps too: from the same state, a step
     with them ends at a lower F (host, float64; gravity in PD's y is F's external force) than

@@ -166,7 +166,8 @@ def test_fuzz_cloth_model_raises_only_value_error(kw):
 
 
 OPTIONS = ["--frames", "--fps", "--substeps", "--res", "--solver", "--stiffness", "--density",
-           "--bending", "--bend-stiffness", "--damping", "--linear", "--newton-iterations",
+           "--bending", "--bend-stiffness", "--damping", "--linear", "--linear-iterations",
+           "--newton-iterations",
            "--iterations", "--compliance", "--strain-limit", "--area-limit", "--friction",
            "--restitution", "--thickness", "--save-interval", "--out", "--bogus"]
 values = st.one_of(st.sampled_from(["1", "2", "0.5", "1e40", "1e-300", "1e-30", "0", "-1", "nan",

@@ -49,6 +49,7 @@ BENCH_NAMES = ["explicit", "implicit", "pbd", "pd", "contact", "tradeoff", "stab
 # option -> (solver option name, solvers that accept it)
 SOLVER_OPTIONS = {
     "linear": ("linear", ("implicit", "pd")),
+    "linear_iterations": ("linear_iterations", ("implicit", "pd")),
     "newton_iterations": ("newton_iterations", ("implicit",)),
     "initial_guess": ("initial_guess", ("implicit",)),
     "smoothing_sweeps": ("smoothing_sweeps", ("implicit", "pd")),
@@ -189,6 +190,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--linear", choices=["jacobi", "chebyshev", "cg", "cholesky"], default=None,
                    help="inner linear solver (implicit, pd; cholesky: CG with a banded Cholesky factor "
                         "of the matrix, pd's default on the CPU without contact)")
+    r.add_argument("--linear-iterations", type=_positive_int, default=None,
+                   help="inner iterations per Newton or global step (implicit, pd; default: "
+                        "the inner solver's: pd's cholesky 1 without contact, CG 20)")
     r.add_argument("--newton-iterations", type=_positive_int, default=None, help="implicit")
     r.add_argument("--initial-guess", choices=["inertial", "start", "velocity", "auto"],
                    default=None,
