@@ -39,7 +39,7 @@ from .linear import CGSolver, spring_block_matrix
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["rcm_order", "band_width", "CholeskyCGSolver", "ScalarBandFactor", "MAX_BAND_ENTRIES"]
+__all__ = ["rcm_order", "band_width", "narrowest_order", "CholeskyCGSolver", "ScalarBandFactor", "MAX_BAND_ENTRIES"]
 
 #: the largest band (rows x width, float64 entries) a factor may take: 64 M entries = 512 MB
 MAX_BAND_ENTRIES = 1 << 26
@@ -109,6 +109,16 @@ def band_width(perm: np.ndarray, rows, cols) -> int:
     iperm = np.empty(len(perm), dtype=np.int64)
     iperm[perm] = np.arange(len(perm))
     return int(np.abs(iperm[rows] - iperm[cols]).max())
+
+
+def narrowest_order(n: int, rows, cols, rcm: bool = True):
+    """``(perm, width)``: the narrower band of the mesh's own numbering and, with ``rcm``,
+    reverse Cuthill-McKee's order (a grid with diagonal springs: its rows, one row wide;
+    RCM's levels there are two rows wide), over the edges ``(rows[k], cols[k])``."""
+    orders = [np.arange(n, dtype=np.int32)]
+    if rcm:
+        orders.append(rcm_order(n, rows, cols))
+    return min(((p, band_width(p, rows, cols)) for p in orders), key=lambda pw: pw[1])
 
 
 @wp.kernel
@@ -255,12 +265,7 @@ class BandFactor:
         srows = np.repeat(np.arange(n), np.diff(soff))
         scols = A.s_cols.numpy()[: len(srows)]
         allr, allc = np.concatenate([rows, srows]), np.concatenate([cols, scols])
-        # the narrower of the mesh's own numbering and reverse Cuthill-McKee (a grid with
-        # diagonal springs: its rows, one row wide; RCM's levels there are two rows wide)
-        self.perm, self.vertex_width = min(
-            ((p, band_width(p, allr, allc)) for p in (np.arange(n, dtype=np.int32),
-                                                      rcm_order(n, allr, allc))),
-            key=lambda pw: pw[1])
+        self.perm, self.vertex_width = narrowest_order(n, allr, allc)
         self.width = 3 * self.vertex_width + 2
         self.rows = 3 * n
         if self.rows * (self.width + 1) > MAX_BAND_ENTRIES:
@@ -375,10 +380,7 @@ class ScalarBandFactor:
         if given is not None:
             self.perm, self.width = np.asarray(given[0], dtype=np.int32), int(given[1])
         else:
-            self.perm, self.width = min(
-                ((p, band_width(p, rows, cols)) for p in (np.arange(n, dtype=np.int32),
-                                                          rcm_order(n, rows, cols))),
-                key=lambda pw: pw[1])
+            self.perm, self.width = narrowest_order(n, rows, cols)
         self.vertex_width = self.width
         self.rows = n
         if n * (self.width + 1) > MAX_BAND_ENTRIES:

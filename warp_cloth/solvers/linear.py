@@ -434,9 +434,14 @@ class CGSolver(_Base):
         """``z`` from ``r`` and ``rz[slot] = r . z`` when the preconditioner is not the block
         Jacobi that the start and update kernels apply (`band.CholeskyCGSolver`); none here."""
 
-    def solve(self, A, b, x, iterations=None, tolerance=...):
+    def setup(self, A) -> None:
+        """The work arrays and the preconditioner for ``A`` (host work and allocations): done
+        by the first `solve`, or beforehand, outside a recorded graph."""
         self._alloc(A)
         self._prepare(A)
+
+    def solve(self, A, b, x, iterations=None, tolerance=...):
+        self.setup(A)
         iters = self.iterations if iterations is None else int(iterations)
         tol = self.tolerance if tolerance is ... else tolerance
         check = self.check_every if (tolerance is ... or tol is None) else (self.check_every or 1)

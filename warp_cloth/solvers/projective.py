@@ -810,7 +810,7 @@ class ProjectiveDynamics(Solver):
         `CHOLESKY_MAX_WIDTH` vertices wide (host, once; the order found is the factor's,
         `band.ScalarBandFactor`)."""
         if self._band_width is None:
-            from .band import band_width, rcm_order
+            from .band import narrowest_order
 
             m = self.model
             pairs = m.spring_pairs
@@ -823,11 +823,7 @@ class ProjectiveDynamics(Solver):
             r = np.concatenate(rows).astype(np.int64)
             c = np.concatenate(cols).astype(np.int64)
             n = m.num_vertices
-            orders = [np.arange(n, dtype=np.int32)]
-            if n <= RCM_MAX_VERTICES:
-                orders.append(rcm_order(n, r, c))
-            self._band_order = min(((p, band_width(p, r, c)) for p in orders),
-                                   key=lambda pw: pw[1])
+            self._band_order = narrowest_order(n, r, c, rcm=n <= RCM_MAX_VERTICES)
             self._band_width = self._band_order[1]
         return (self._band_width <= CHOLESKY_MAX_WIDTH
                 and self.model.num_vertices * (self._band_width + 1) <= CHOLESKY_MAX_ENTRIES)
@@ -881,8 +877,8 @@ class ProjectiveDynamics(Solver):
             self.operator = PDSystemOperator(self.model, 1.0 / (dt * dt), self.matrix_terms)
         else:
             self.operator.update(1.0 / (dt * dt))
-        self.linear_name  # (the default may look for the band's order: `_narrow_band`)
-        if self._band_order is not None:  # the factor's order, found already
+        if self._linear_given is None and self.device.is_cpu and self._narrow_band():
+            # the default factor (alone or in contact-free iterations) takes the order found
             self.operator.band_order = self._band_order
         if self.direct:
             S = self.operator.dense_scalar()
@@ -905,8 +901,7 @@ class ProjectiveDynamics(Solver):
             # set up (allocations, the factor) now: the first contact-free step may be
             # recorded in a graph
             self._free_linear = make_linear_solver("cholesky", iterations=1, tolerance=None)
-            self._free_linear._alloc(self.operator)
-            self._free_linear._prepare(self.operator)
+            self._free_linear.setup(self.operator)
 
     def _hybrid(self) -> bool:
         """Whether the default inner solver with a collision stage (CG) leaves the iterations
