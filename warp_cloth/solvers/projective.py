@@ -640,7 +640,9 @@ class ProjectiveDynamics(Solver):
         stats: after a step (read lazily from the device): ``iterations``,
             ``inner_iterations``, ``objective`` (F at the iterate where each outer iteration
             starts, J), ``gradient_norm`` (``|grad F|`` there, N), ``linear_residual`` (last
-            inner solve, when measured), ``rho``.
+            inner solve, when measured), ``rho``, ``linear``, ``factor_fallbacks`` (banded-factor
+            applications that fell back to block Jacobi over the run: a constant matrix with no
+            Cholesky factor; reported by `frame_end` too).
     """
 
     name = "pd"
