@@ -127,7 +127,9 @@ def test_meter_sums_kinetic_and_potential_energy_in_float64():
     rng = np.random.default_rng(1)
     v = rng.normal(0.0, 3.0, (model.num_vertices, 3)).astype(np.float32)
     state.v.assign(v)
-    x = state.x.numpy().astype(np.float64)
+    # the world's potential (the sheet is simulated in a frame 1,000 m up: `test_origin.py`)
+    assert model.origin[1] == 1000.0
+    x = state.world_positions()
     m = model.mass.numpy().astype(np.float64)
     g = np.asarray(model.gravity, np.float32).astype(np.float64)  # as the kernels get it
     meas = Meter(model)(state, energy=False)

@@ -79,6 +79,13 @@ class Meter:
         self.sums = wp.zeros(3, dtype=wp.float64, device=model.device)
         self._springs64 = self.sums[2:3]
         self._elastic = self.out[4:5]
+        # gravity's potential of the simulation frame's offset (`ClothModel.origin`): energies
+        # are the world frame's
+        # (with the float32 masses and gravity the kernel sums, in float64)
+        o = getattr(model, "origin", None)
+        g32 = np.asarray(model.gravity, dtype=np.float32).astype(np.float64)
+        m32 = np.asarray(model.masses, dtype=np.float32).astype(np.float64)
+        self._g_offset = 0.0 if o is None else -float(np.dot(g32, o)) * float(m32.sum())
 
     def __call__(self, state, energy: bool = True) -> Measure:
         m, out = self.model, self.out
@@ -100,6 +107,7 @@ class Meter:
                     term.energy(state.x, self._elastic)
             h = out.numpy()
         k, g, springs = (float(v) for v in self.sums.numpy())
+        g += self._g_offset
         return Measure(bool(finite), k, g, float(h[4]) + springs if energy else float("nan"),
                        float(h[3]) if finite else float("nan"))
 

@@ -414,6 +414,7 @@ class Scene:
             for ob in self.obstacles:
                 writer.add_obstacle(ob)
         up = model.up_index  # heights along the mesh's up axis
+        any_origin = bool(np.any(model.origin))  # a simulation frame off the world's
         checker = None
         crossing_frames, max_crossings = 0, 0
         short_frames = 0
@@ -427,7 +428,9 @@ class Scene:
         if check_intersections and self.obstacles:
             from .collision.check import ObstacleChecker
 
-            ob_checker = ObstacleChecker(self.obstacles, model.mesh.edges,
+            # in the simulation frame, as the state (`ClothModel.origin`)
+            sim = getattr(stage, "sim_obstacles", self.obstacles)
+            ob_checker = ObstacleChecker(sim, model.mesh.edges,
                                          model.inverse_masses > 0, device=model.device)
         stage = getattr(solver, "collision", None)
         if stage is not None and hasattr(stage, "restart_span"):
@@ -575,10 +578,11 @@ class Scene:
                             bar.note(f"warning: frame {frame}: the cloth is inside an obstacle "
                                      f"({k} edge points or edges; deepest point "
                                      f"{1e3 * deep:.3f} mm)")
-                lo = min(lo, float(x[:, up].min()))
-                hi = max(hi, float(x[:, up].max()))
-                if writer is not None:
-                    writer.write_frame(frame, {mesh_path: x}, sim_time=frame / self.fps)
+                lo = min(lo, float(x[:, up].min()) + float(model.origin[up]))
+                hi = max(hi, float(x[:, up].max()) + float(model.origin[up]))
+                if writer is not None:  # in the world frame
+                    writer.write_frame(frame, {mesh_path: model.to_world(x) if any_origin else x},
+                                       sim_time=frame / self.fps)
                 if on_frame is not None:
                     on_frame(frame, state)
                 if self._ledger is not None:  # `warp_cloth.ledger.EnergyLedger`: the next steps

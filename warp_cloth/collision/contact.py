@@ -97,7 +97,7 @@ import warp as wp
 
 from ..util import launch, not_text_or_bool
 from .motion import KIND_MESH, quat_rotate
-from .obstacles import Obstacle, Sphere, cloth_chord, sphere_contact_pad
+from .obstacles import Obstacle, Sphere, cloth_chord, in_frame, sphere_contact_pad
 
 __all__ = ["ObstacleContact", "PENETRATION_TOLERANCE", "DEFAULT_THICKNESS", "DEFAULT_FRICTION",
            "DEFAULT_RESTITUTION", "NEAR_BATCH"]
@@ -173,7 +173,12 @@ class ObstacleContact:
                                 "Box or MeshObstacle")
         self.model = model
         self.device = model.device
-        self.obstacles = obstacles
+        #: the obstacles as given, in the world frame (drawn in the USD output)
+        self.world_obstacles = obstacles
+        #: the same in the model's simulation frame (`ClothModel.origin`; the given objects
+        #: themselves when that is the world frame): every computation uses these
+        self.obstacles = in_frame(obstacles, getattr(model, "origin", None))
+        obstacles = self.obstacles
         self.thickness = _num("thickness", thickness, 0.0, 1.0e6, lo_open=True)
         self.restitution = _num("restitution", restitution, 0.0, 1.0)
         self.friction = _num("friction", friction, 0.0)
@@ -582,7 +587,9 @@ class ObstacleContact:
 
     # ------------------------------------------------------------------ reports (host side)
     def signed_distances(self, positions, t: float) -> np.ndarray:
-        """(num_obstacles, N) signed distances of host positions at time ``t`` (tests, reports)."""
+        """(num_obstacles, N) signed distances of host positions at time ``t`` (tests, reports),
+        in the model's simulation frame (`warp_cloth.model.ClothModel.origin`: ``state.x``, not
+        `State.world_positions`)."""
         return np.stack([ob.signed_distance(positions, t) for ob in self.obstacles])
 
     def contact_distances(self, positions, t: float) -> np.ndarray:

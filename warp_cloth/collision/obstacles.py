@@ -25,6 +25,7 @@ Per-obstacle ``friction`` (mu_T) and ``restitution`` (mu_N) override the contact
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 
@@ -93,6 +94,15 @@ class Obstacle:
     def pose(self, t: float = 0.0):
         """World centre (3,) and rotation quaternion ``(x, y, z, w)`` at time ``t`` (s)."""
         return self.motion.pose(float(t), self.position, self.rotation)
+
+    def shifted(self, offset) -> "Obstacle":
+        """A copy of this obstacle moved by ``offset`` (m; the same shape, motion and material):
+        the obstacle in a simulation frame whose origin is ``-offset`` (`in_frame`). Shares the
+        shape's data (a mesh's BVH is in its own local frame)."""
+        ob = copy.copy(self)
+        ob.position = np.asarray(self.position, dtype=np.float64) + np.asarray(offset, np.float64)
+        ob._usd = None
+        return ob
 
     def to_local(self, points, t: float = 0.0) -> np.ndarray:
         c, q = self.pose(t)
@@ -241,6 +251,16 @@ class Plane(Obstacle):
             raise ValueError(f"display_size must be > 0, got {display_size}")
         super().__init__(point, quat_between((0.0, 1.0, 0.0), self.normal), motion, friction,
                          restitution, name)
+
+    def shifted(self, offset) -> "Plane":
+        """`Obstacle.shifted`; a plane that does not turn is anchored at its point nearest the
+        new frame's origin (float32 keeps the point near the cloth: ``(x - p) . n`` with ``p``
+        a thousand metres away rounds to 1e-4 m)."""
+        ob = super().shifted(offset)
+        if not np.any(self.motion.angular_velocity) and self.motion.path is None:
+            n = self.normal
+            ob.position = n * float(np.dot(ob.position, n))
+        return ob
 
     def travel(self, t0: float, t1: float) -> float:
         """How far the plane moves along its normal from ``t0`` to ``t1`` (sliding in itself
@@ -593,3 +613,14 @@ def sphere_contact_pad(sphere: "Sphere", chord: float, thickness: float) -> floa
     if sphere_needs_features(sphere, chord, thickness):
         return 0.0
     return max(0.0, sphere.edge_dip(SPHERE_EDGE_STRETCH * float(chord), thickness))
+
+
+def in_frame(obstacles, origin) -> list:
+    """``obstacles`` in a simulation frame centred on the world point ``origin``
+    (`warp_cloth.model.ClothModel.origin`): `Obstacle.shifted` copies, or the same list when
+    ``origin`` is None or zero."""
+    obstacles = list(obstacles)
+    if origin is None or not np.any(origin):
+        return obstacles
+    o = np.asarray(origin, dtype=np.float64).reshape(3)
+    return [ob.shifted(-o) for ob in obstacles]

@@ -275,6 +275,13 @@ class CollisionStage:
     # ------------------------------------------------------------------ what it holds
     @property
     def obstacles(self) -> list:
+        """The obstacles as given, in the world frame (the scene draws these)."""
+        return list(self.contact.world_obstacles) if self.contact is not None else []
+
+    @property
+    def sim_obstacles(self) -> list:
+        """The obstacles in the model's simulation frame (`ClothModel.origin`), as the contact
+        computes with them; the given ones when that is the world frame."""
         return list(self.contact.obstacles) if self.contact is not None else []
 
     @property
@@ -300,7 +307,7 @@ class CollisionStage:
         if int(frames) != frames or frames < 0:
             raise ValueError(f"contact_substeps: frames must be a whole number >= 0, got "
                              f"{frames!r}")
-        moving = [ob for ob in self.obstacles if ob.moving]
+        moving = [ob for ob in self.sim_obstacles if ob.moving]
         if not moving or frames < 1:
             return 1
         m = self.model
