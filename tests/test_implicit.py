@@ -718,3 +718,44 @@ def test_chebyshev_fallbacks_are_counted_and_reported():
     assert n >= 2 and any(f"{n} chebyshev inner solve(s) diverged" in s for s in msgs), outs
     n, msgs = outs[False]
     assert n == 0 and not any("diverged" in s for s in msgs), outs
+
+
+def test_converging_reads_a_steady_fall_only():
+    rate = imp.CONVERGE_RATE
+    falling = [1.0, 0.5, 0.25, 0.125]  # halves every iteration
+    assert imp._converging(falling, 0.125 * 0.5 ** 4, 5)  # there within five more
+    assert not imp._converging(falling, 0.125 * 0.5 ** 8, 5)  # not within five
+    assert not imp._converging([1.0, 1.0, 0.9, 1.1], 1e-3, 50)  # wandering
+    assert not imp._converging([1.0, 0.5], 1e-3, 50)  # too short to tell
+    slow = [1.0, rate, rate ** 2, rate ** 3]  # at the rate itself: not counted
+    assert not imp._converging(slow, 1e-9, 1000)
+    assert not imp._converging(falling, 1.0, 0)  # nothing left
+
+
+def test_a_contact_step_that_converges_past_its_cap_goes_on(monkeypatch):
+    """The first step of the 16 x 16 drape that Newton ends past its cap of 10 by
+    `CONVERGE_ROUNDS`, converged; without the rounds the same step stops at the cap, short."""
+    from warp_cloth.scenes import build_scene
+
+    def scene():
+        sc = build_scene("drape", solver="implicit", res=16, frames=2)
+        sc.reset()
+        return sc
+
+    a = scene()
+    K = a.solver.newton_iterations
+    found = None
+    for i in range(240):
+        a.solver.step(a.state, a.dt)
+        st = a.solver.stats
+        if st["converge_steps"]:
+            found = i
+            break
+    assert found is not None, "no step went past its cap"
+    assert st["newton_iterations"] > K and st["converged"]
+    monkeypatch.setattr(imp, "CONVERGE_ROUNDS", 0)
+    b = scene()  # the same steps up to that one (none went past its cap before it)
+    for _ in range(found + 1):
+        b.solver.step(b.state, b.dt)
+    assert b.solver.stats["newton_iterations"] == K and not b.solver.stats["converged"]
+    assert b.solver.stats["converge_steps"] == 0

@@ -458,6 +458,16 @@ ENERGY_GUARD_ROUNDS = 2
 #: of that pair stretched an edge 35 % (explicit Euler 11 %; 20 iterations: 9 %)
 IMPACT_ROUNDS = 2
 
+#: a step at its Newton cap above its tolerance whose residual has been falling steadily goes
+#: on, in rounds of a quarter of ``newton_iterations``, up to this many times them more, while
+#: its rate (the residual's ratio per iteration over the last `CONVERGE_SPAN`) reaches the
+#: tolerance within what is left (`_converging`); a step that stalls or wanders stops at the cap
+#: as before. Counted in ``stats["converge_steps"]``
+CONVERGE_ROUNDS = 1
+CONVERGE_SPAN = 3
+#: the largest ratio per iteration counted as converging
+CONVERGE_RATE = 0.8
+
 #: with the energy guard, a line search whose four steps all raise F tries these times shorter
 LS_RETRY = 1.0 / 16.0
 
@@ -723,6 +733,21 @@ LINEAR_DEFAULTS = {
 }
 
 
+def _converging(history, tol: float, left: int) -> bool:
+    """Whether the residuals ``history`` (one per Newton iterate, the last one's update already
+    taken) fall steadily enough to reach ``tol`` within ``left`` more iterations: their ratio
+    per iteration over the last `CONVERGE_SPAN` (the geometric mean: Newton's residual is not
+    monotone) is below `CONVERGE_RATE`, and the last residual times it to the power ``left``
+    is below ``tol`` (`CONVERGE_ROUNDS`)."""
+    if left <= 0 or len(history) <= CONVERGE_SPAN:
+        return False
+    last, first = history[-1], history[-1 - CONVERGE_SPAN]
+    if not (math.isfinite(last) and first > 0.0 and last > 0.0):
+        return False
+    rate = (last / first) ** (1.0 / CONVERGE_SPAN)
+    return rate < CONVERGE_RATE and last * rate ** left < tol
+
+
 class ImplicitEuler(Solver):
     """Backward Euler by Newton's method with a matrix-free inner solver. ``solver.step(state, dt)``.
 
@@ -971,7 +996,7 @@ class ImplicitEuler(Solver):
         self._steady_now = False  # this step measures energy in the obstacles' steady frame
         self._fallbacks_seen = 0  # (`_frame_messages`, linear="cholesky")
         self._guard = {"extended": 0, "gained": 0, "new": 0, "last": 0.0, "rejected": 0,
-                       "steady": 0, "impact": 0,
+                       "steady": 0, "impact": 0, "converge": 0,
                        "clamped": 0, "gradient": 0, "scale": 1.0, "unlanded": 0}
         self.residuals = wp.zeros(self._k_total + 1, dtype=wp.float32, device=d)
         self.dx_max = wp.zeros(self._k_total + 1, dtype=wp.float32, device=d)
@@ -1201,6 +1226,8 @@ class ImplicitEuler(Solver):
         moved = 0.0
         impact = self._impact_move(coupling) if check else None
         impact_more = 0
+        history = []  # the residual of each iterate (host reads of a step with a tolerance)
+        converge_more = 0
         for k in range(self._k_total):
             if k >= cap:  # Newton reached its cap above its tolerance
                 if (impact is not None and moved > impact and k < K * (1 + IMPACT_ROUNDS)
@@ -1209,6 +1236,10 @@ class ImplicitEuler(Solver):
                     if impact_more == 0:  # the solve's self-contacts from the path it took
                         coupling.detect_self(self.x_prev, x)
                     impact_more += 1
+                elif (check and not extended and not impact_more
+                      and _converging(history, tol, K * (1 + CONVERGE_ROUNDS) - k)):
+                    cap += max(1, K // 4)
+                    converge_more += 1
                 elif not guard or self._energy_gain(x, state.v, dt) <= self._guard_eps:
                     break  # (the energy guard, below, goes on while the step gained energy)
                 else:
@@ -1229,6 +1260,7 @@ class ImplicitEuler(Solver):
             self._assemble(x, k)
             if check or trace is not None:
                 r = float(self.residuals.numpy()[k])
+                history.append(r)
                 if trace is not None:
                     trace.append({"F": self.objective(x), "residual": r})
                 if check and r < tol and (k > 0 or not self._must_solve(coupling)):
@@ -1372,7 +1404,9 @@ class ImplicitEuler(Solver):
         self._stats["inner_short"] = inner_short
         self._guard["steady"] += steady_more
         self._guard["impact"] += 1 if impact_more else 0
+        self._guard["converge"] += 1 if converge_more else 0
         self._stats["impact_steps"] = self._guard["impact"]
+        self._stats["converge_steps"] = self._guard["converge"]
         self._stats["steady_stall_iterations"] = self._guard["steady"]
         if check and not self._stats["converged"]:
             floor = self.residual_floor(dt)
