@@ -91,6 +91,40 @@ def test_ccd_has_no_false_negative_on_exact_queries(path):
     # cannot be a positive (checked above); hits on negatives are counted by bench ccd
 
 
+#: the same query with its primitives in another order (rows 0-3 at t = 0, 4-7 at t = 1)
+EE_ORDERS = ([2, 3, 0, 1], [1, 0, 2, 3], [0, 1, 3, 2], [3, 2, 1, 0])  # edges swapped, reversed
+VF_ORDERS = ([0, 2, 3, 1], [0, 3, 1, 2], [0, 1, 3, 2])  # the triangle's corners turned, flipped
+
+
+@pytest.mark.parametrize("path", _query_files(), ids=lambda p: "/".join(p.split(os.sep)[-3:-1]))
+def test_ccd_misses_nothing_in_another_order_or_scale(path):
+    """The exact queries with their primitives reordered (edges swapped or reversed, a
+    triangle's corners turned or flipped) and scaled by 2^20 and 2^-20 (exact in float64): the
+    answer is the same, and the test must not miss one either way (an asymmetric bound or a
+    tolerance in absolute units would)."""
+    pts, truth = read_queries(path)
+    ee = "edge-edge" in path
+    for order in EE_ORDERS if ee else VF_ORDERS:
+        idx = order + [i + 4 for i in order]
+        for scale in (1.0, 2.0 ** 20, 2.0 ** -20):
+            status, _, _ = run_queries(pts[:, idx, :] * scale, ee, delta=1e-10)
+            hit = status != geometry.CCD_MISS
+            assert not (truth & ~hit).any(), (order, scale, int((truth & ~hit).sum()))
+
+
+@pytest.mark.parametrize("ee", [False, True], ids=["vertex-face", "edge-edge"])
+def test_ccd_misses_no_constructed_contact_in_another_order_or_scale(ee):
+    """`constructed_queries` (every one touches; half nearly degenerate; at the origin and far
+    from it) reordered and scaled as above."""
+    pts, _, _ = constructed_queries(400, ee, seed=3)
+    for order in EE_ORDERS if ee else VF_ORDERS:
+        idx = order + [i + 4 for i in order]
+        for scale in (1.0, 2.0 ** 20, 2.0 ** -20):
+            status, _, _ = run_queries(pts[:, idx, :] * scale, ee, delta=1e-10)
+            missed = int((status == geometry.CCD_MISS).sum())
+            assert missed == 0, (order, scale, missed)
+
+
 def _vt(v0, tri0, v1, tri1, delta=1e-9):
     pts = np.array([[v0, *tri0, v1, *tri1]], dtype=np.float64)
     s, t, _ = run_queries(pts, False, delta=delta)
