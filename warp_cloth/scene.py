@@ -373,7 +373,8 @@ class Scene:
         most of the cloth in rigid impact zones or returned the whole cloth to its start in
         most of its steps; the USD file then holds the frames before it.
         ``on_frame(frame, state)`` is called after each frame is checked (for custom
-        recording). With self-collision, a cloth that passes through itself at the start raises
+        recording; ``state.x`` is in the model's simulation frame, `State.world_positions` in
+        the world's: they differ for a cloth far from the origin, `ClothModel.origin`). With self-collision, a cloth that passes through itself at the start raises
         `ValueError` (naming an edge and a triangle) before anything is written:
         self-collision keeps an intersection-free cloth so, and cannot make one (such a start
         held every step at its start: a frozen cloth).
