@@ -128,3 +128,53 @@ def test_a_tilted_plane_far_away_is_anchored_near_the_cloth():
     np.testing.assert_allclose(q.signed_distance(pts), p.signed_distance(pts + o), atol=1e-9)
     spinning = Plane(normal=(0.0, 1.0, 1.0), motion=Motion(angular_velocity=(0.0, 1.0, 0.0)))
     np.testing.assert_allclose(spinning.shifted(-o).position, -o)  # turns about its own point
+
+
+def _uv_sphere(radius=0.3, nu=24, nv=12):
+    th = np.linspace(0.0, np.pi, nv + 1)
+    ph = np.linspace(0.0, 2.0 * np.pi, nu, endpoint=False)
+    v = [(0.0, radius, 0.0)]
+    for i in range(1, nv):
+        for j in range(nu):
+            v.append((radius * np.sin(th[i]) * np.cos(ph[j]), radius * np.cos(th[i]),
+                      radius * np.sin(th[i]) * np.sin(ph[j])))
+    v.append((0.0, -radius, 0.0))
+    f = [(0, 1 + (j + 1) % nu, 1 + j) for j in range(nu)]
+    for i in range(nv - 2):
+        for j in range(nu):
+            a, b = 1 + i * nu + j, 1 + i * nu + (j + 1) % nu
+            f += [(a, b, b + nu), (a, b + nu, a + nu)]
+    last = len(v) - 1
+    f += [(last, 1 + (nv - 2) * nu + j, 1 + (nv - 2) * nu + (j + 1) % nu) for j in range(nu)]
+    return np.array(v), np.array(f)
+
+
+def test_a_mesh_obstacle_baked_far_out_keeps_its_clearance():
+    """A mesh exported in world coordinates (vertices 1,000 m out, no pose) under a far sheet:
+    its simulation copy is re-centred on its vertices, so the BVH queries run near the origin
+    (left 1,000 m out, a PBD drape kept 4.93 mm of the 5 mm clearance)."""
+    from warp_cloth.collision import MeshObstacle
+
+    v, f = _uv_sphere()
+    off = np.array([1000.0, 0.3, 0.0])
+    baked = MeshObstacle((v + off, f))
+    mesh = wc.TriMesh.grid(16, 16, size=1.0, plane="xz", origin=(999.5, 0.75, -0.5))
+    model = wc.ClothModel(mesh, density=0.15, stretch_stiffness=1000.0, damping=0.1)
+    stage = CollisionStage(model, [Plane(), baked], self_collision=True)
+    sim = stage.sim_obstacles[1]
+    assert np.abs(sim.vertices).max() < 1.0  # re-centred; the given object untouched
+    assert np.abs(baked.vertices).max() > 999.0 and stage.obstacles[1] is baked
+    # the same surface: as the sphere given by its pose (whose queries are near its origin;
+    # the baked one's own, in float32 1,000 m out, are 2e-5 m off)
+    posed = MeshObstacle((v, f), position=tuple(off))
+    pts = np.array([[1000.1, 0.7, 0.05], [999.8, 0.1, 0.2]])
+    np.testing.assert_allclose(sim.signed_distance(pts - model.origin),
+                               posed.signed_distance(pts), atol=1e-6)
+    scene = wc.Scene(model, wc.make_solver("pbd", model, collision=stage), fps=60, frames=60)
+    st = scene.run(None, quiet=True, check_intersections=True)
+    assert st.min_clearance >= 0.005 - 1e-5
+    assert st.crossing_frames == 0 and st.obstacle_frames == 0
+    # a turning mesh turns about its own origin: not re-centred
+    spun = MeshObstacle((v + off, f), motion=Motion(angular_velocity=(0.0, 1.0, 0.0)))
+    s2 = CollisionStage(model, [spun])
+    np.testing.assert_array_equal(s2.sim_obstacles[0].vertices, spun.vertices)
