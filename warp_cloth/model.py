@@ -166,6 +166,14 @@ def _choose_origin(points, origin) -> np.ndarray:
             raise ValueError(f"origin must be 3 finite numbers (m), got {origin!r}")
         _check_float32("origin", o, " m")
         return o.astype(np.float64)
+    return frame_origin(points)
+
+
+def frame_origin(points) -> np.ndarray:
+    """The origin of a simulation frame for ``points`` (N, 3): their bounding box's centre
+    rounded to whole metres when it is farther than `ORIGIN_THRESHOLD` from the origin along
+    some axis, else zeros (`ClothModel`'s default ``origin``; a mesh obstacle's re-centring,
+    `MeshObstacle.shifted`)."""
     p = np.asarray(points, dtype=np.float64)
     c = 0.5 * (p.min(axis=0) + p.max(axis=0)) if len(p) else np.zeros(3)
     if np.abs(c).max() <= ORIGIN_THRESHOLD:

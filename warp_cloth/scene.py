@@ -415,7 +415,6 @@ class Scene:
             for ob in self.obstacles:
                 writer.add_obstacle(ob)
         up = model.up_index  # heights along the mesh's up axis
-        any_origin = bool(np.any(model.origin))  # a simulation frame off the world's
         checker = None
         crossing_frames, max_crossings = 0, 0
         short_frames = 0
@@ -582,7 +581,7 @@ class Scene:
                 lo = min(lo, float(x[:, up].min()) + float(model.origin[up]))
                 hi = max(hi, float(x[:, up].max()) + float(model.origin[up]))
                 if writer is not None:  # in the world frame
-                    writer.write_frame(frame, {mesh_path: model.to_world(x) if any_origin else x},
+                    writer.write_frame(frame, {mesh_path: model.to_world(x)},
                                        sim_time=frame / self.fps)
                 if on_frame is not None:
                     on_frame(frame, state)

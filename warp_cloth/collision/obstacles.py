@@ -533,15 +533,14 @@ class MeshObstacle(Obstacle):
         that frame (a sheet draped on such a sphere kept 4.93 mm of a 5 mm clearance against
         5.00 mm with the same sphere given by ``position``)."""
         ob = super().shifted(offset)
-        c = np.asarray(self._center(), dtype=np.float64)
+        from ..model import frame_origin
+
         path = self.motion.path
         turns = bool(np.any(self.motion.angular_velocity)) or (
             path is not None and not np.allclose(np.abs(path.rotations[:, 3]), 1.0))
-        from ..model import ORIGIN_THRESHOLD
-
-        if turns or np.abs(c).max() <= ORIGIN_THRESHOLD:
+        c = frame_origin(self.vertices)
+        if turns or not np.any(c):
             return ob
-        c = np.round(c)
         ob.vertices = self.vertices - c
         ob.position = ob.position + quat_rotate(np.asarray(self.rotation, np.float64), c)
         ob._wp_mesh = {}
