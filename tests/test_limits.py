@@ -299,3 +299,35 @@ def test_after_contact_rounds_that_run_out_are_reported(monkeypatch):
     assert "after 1 rounds" in str(msgs[0])
     msgs8, short8 = run(8)
     assert short8 < short, (short8, short)
+
+
+def test_a_limit_that_the_pins_make_unreachable_stalls_and_says_so():
+    """Pins held 1.3 times their rest distance apart: no sweep can bring the strip's edges
+    under 1.01, and the worst excess stays where it is. The pass stops after `STALL_SWEEPS`
+    sweeps without progress (not the 2,000 of ``iterations``: a sheet whose pinned corner a
+    rising floor passed ran them in every step, 95 s a frame), counted as short and as stalled,
+    and `frame_end` says why; a pass that converges slowly (the sheet pulled to 1.2 times) is
+    not cut."""
+    from warp_cloth import limits
+
+    mesh = TriMesh.grid(6, 1, size=(0.6, 0.1), plane="xy")
+    ends = [0, 6, 7, 13]
+    model = ClothModel(mesh, density=0.2, stretch_stiffness=1e3, pins=ends)
+    x0 = mesh.vertices * np.array([1.3, 1.0, 1.0])
+    lim = StrainLimit(model, 0.0, 1.01)
+    st = state_at(model, x0)
+    lim.apply(st, None, 0.01)
+    s = lim.stats
+    assert s["short_steps"] == 1 and s["stalled_steps"] == 1, s
+    assert limits.STALL_SWEEPS <= s["sweeps_max"] <= limits.STALL_SWEEPS + 2 * lim.check_every, s
+    msgs = lim.frame_end()
+    assert len(msgs) == 1 and "stalled in 1 step" in msgs[0], msgs
+    # reachable: every edge ends inside the tolerance, nothing stalls
+    model2 = hanging_model(res=10)
+    x2 = model2.mesh.vertices * np.array([1.2, 1.0, 1.0])
+    x2[model2.pins] = model2.mesh.vertices[model2.pins]
+    lim2 = StrainLimit(model2, 0.0, 1.01)
+    st2 = state_at(model2, x2)
+    lim2.apply(st2, None, 0.01)
+    assert lim2.stats["stalled_steps"] == 0 and lim2.stats["short_steps"] == 0, lim2.stats
+    assert (edge_strains(model2, st2.x.numpy()) + 1.0).max() <= 1.01 + 1e-3

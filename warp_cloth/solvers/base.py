@@ -112,6 +112,7 @@ class Solver:
         if getattr(self, "_x_mid", None) is None:
             self._x_mid = wp.zeros(self.model.num_vertices, dtype=wp.vec3, device=self.device)
             self._limit_moved = wp.zeros(1, dtype=wp.int32, device=self.device)
+            self._limit_stalled = wp.zeros(1, dtype=wp.int32, device=self.device)
             # [another round, rounds run, steps that ran out of rounds] (`_after_round`)
             self._after = wp.zeros(3, dtype=wp.int32, device=self.device)
             self._after_short_seen = 0
@@ -121,6 +122,7 @@ class Solver:
         self._self_again_alloc()
         wp.copy(self._x_mid, state.x)
         self._limit_moved.zero_()
+        self._limit_stalled.zero_()
 
     def _after_round(self, state, dt, stage, afters, sc) -> None:
         """One round after the collision response: the limits' pass (sweeps only where a bound
@@ -129,15 +131,21 @@ class Solver:
         path: the sweeps do not see new self-contacts and could push the cloth through itself
         (an irregular sheet with 0.65 mm edges under PBD's stretch guard: 2-5 crossing pairs
         from its first frames), so the response comes last. Another round while the pass moved
-        anything, up to `AFTER_CONTACT_ROUNDS`."""
+        anything and no pass stalled (`limits.STALL_SWEEPS`: a bound that the pins or the
+        contacts keep out of reach, which more rounds do not reach either: a 10 x 10 sheet
+        whose pinned corner a rising floor passed ran eight rounds of stalled passes in every
+        step), up to `AFTER_CONTACT_ROUNDS`."""
         self._self_again_prepare(state)
         for c in afters:
             ran = c.after_contact(state, self._x_start, dt, stage)
             if ran and hasattr(c, "moved_into"):
                 c.moved_into(self._limit_moved)
+            if ran and hasattr(c, "stalled_into"):
+                c.stalled_into(self._limit_stalled)
         wp.capture_if(self._limit_moved, self._self_again, state=state, dt=dt, sc=sc)
-        launch(common.after_round_kernel, 1, [self._limit_moved, self._after,
-                                              int(AFTER_CONTACT_ROUNDS)], device=self.device)
+        launch(common.after_round_kernel, 1, [self._limit_moved, self._limit_stalled,
+                                              self._after, int(AFTER_CONTACT_ROUNDS)],
+               device=self.device)
 
     def _self_again(self, state, dt, sc) -> None:
         """The self-collision response on the path the limits' pass after contact moved the

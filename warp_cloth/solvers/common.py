@@ -95,12 +95,13 @@ def after_begin_kernel(after: wp.array(dtype=wp.int32)):
 
 
 @wp.kernel
-def after_round_kernel(moved: wp.array(dtype=wp.int32), after: wp.array(dtype=wp.int32),
-                       rounds: int):
-    """After a round: another while the limits' pass moved anything and ``rounds`` allow; a
-    step whose last allowed round still moved something is counted in ``after[2]`` (over all
-    steps: the response came last, but the limits may be left broken)."""
+def after_round_kernel(moved: wp.array(dtype=wp.int32), stalled: wp.array(dtype=wp.int32),
+                       after: wp.array(dtype=wp.int32), rounds: int):
+    """After a round: another while the limits' pass moved anything, did not stall (the limit
+    counts and reports that step itself) and ``rounds`` allow; a step whose last allowed round
+    still moved something is counted in ``after[2]`` (over all steps: the response came last,
+    but the limits may be left broken)."""
     after[1] = after[1] + 1
-    after[0] = wp.where(moved[0] != 0 and after[1] < rounds, 1, 0)
-    if moved[0] != 0 and after[1] >= rounds:
+    after[0] = wp.where(moved[0] != 0 and stalled[0] == 0 and after[1] < rounds, 1, 0)
+    if moved[0] != 0 and stalled[0] == 0 and after[1] >= rounds:
         after[2] = after[2] + 1
