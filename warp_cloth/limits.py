@@ -297,14 +297,17 @@ def limit_loop_kernel(counts: wp.array(dtype=wp.int32), excess: wp.array(dtype=f
 
 
 @wp.kernel
-def limit_moved_kernel(counts: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int32),
-                       stalled: wp.array(dtype=wp.int32)):
-    """``flag[0] = 1`` when the last pass ran a sweep, ``stalled[0] = 1`` when it stalled
-    (`_JacobiLimit.moved_into`, `stalled_into`; an empty array: not asked)."""
-    if counts[C_SWEEPS] > 0 and flag.shape[0] > 0:
+def limit_moved_kernel(counts: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int32)):
+    """``flag[0] = 1`` when the last pass ran a sweep (`_JacobiLimit.moved_into`)."""
+    if counts[C_SWEEPS] > 0:
         flag[0] = 1
-    if counts[C_STALLED] != 0 and stalled.shape[0] > 0:
-        stalled[0] = 1
+
+
+@wp.kernel
+def limit_stalled_kernel(counts: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int32)):
+    """``flag[0] = 1`` when the last pass stalled (`_JacobiLimit.stalled_into`)."""
+    if counts[C_STALLED] != 0:
+        flag[0] = 1
 
 
 @wp.kernel
@@ -570,13 +573,11 @@ class _JacobiLimit:
     def moved_into(self, flag) -> None:
         """``flag[0] = 1`` if the last pass (`apply`, `after_contact`) ran any sweep, i.e.
         moved vertices (device-side: capturable)."""
-        launch(limit_moved_kernel, 1, [self._counts, flag, self._counts[0:0]],
-               device=self.device)
+        launch(limit_moved_kernel, 1, [self._counts, flag], device=self.device)
 
     def stalled_into(self, flag) -> None:
         """``flag[0] = 1`` if the last pass stopped stalled (`STALL_SWEEPS`; device-side)."""
-        launch(limit_moved_kernel, 1, [self._counts, self._counts[0:0], flag],
-               device=self.device)
+        launch(limit_stalled_kernel, 1, [self._counts, flag], device=self.device)
 
     def after_contact(self, state, x_start, dt: float, stage) -> bool:
         """Run after the collision stage's response (`Solver.step`): friction's tangential
