@@ -331,3 +331,26 @@ def test_a_limit_that_the_pins_make_unreachable_stalls_and_says_so():
     lim2.apply(st2, None, 0.01)
     assert lim2.stats["stalled_steps"] == 0 and lim2.stats["short_steps"] == 0, lim2.stats
     assert (edge_strains(model2, st2.x.numpy()) + 1.0).max() <= 1.01 + 1e-3
+
+
+def test_a_stalled_pass_ends_the_rounds_after_contact():
+    """Under a solver with self-collision the limits' pass after contact and the response
+    alternate while the pass moves anything (`AFTER_CONTACT_ROUNDS`, 8); a pass that stalled
+    ends them at once: more rounds cannot reach a bound the pins keep out of reach (the strip
+    pinned 1.3 times its rest length apart). One round in the step, not eight, and the step is
+    not counted as one that ran out of rounds (the limit reports it as stalled)."""
+    from warp_cloth.collision import CollisionStage
+
+    mesh = TriMesh.grid(6, 1, size=(0.6, 0.1), plane="xy")
+    model = ClothModel(mesh, density=0.2, stretch_stiffness=1e3, pins=[0, 6, 7, 13],
+                       gravity=(0.0, 0.0, 0.0))
+    model.initial_positions = mesh.vertices * np.array([1.3, 1.0, 1.0])
+    stage = CollisionStage(model, self_collision=True)
+    solver = make_solver("explicit", model, collision=stage)
+    lim = StrainLimit(model, 0.0, 1.01)
+    solver.add_correction(lim)
+    st = model.state()
+    solver.step(st, 1e-4)
+    assert int(solver._after.numpy()[1]) == 1, solver._after.numpy()
+    assert int(solver._after.numpy()[2]) == 0
+    assert lim.stats["stalled_steps"] >= 2  # the solver's pass and the one after contact
