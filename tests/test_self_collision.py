@@ -1965,6 +1965,64 @@ def test_a_start_folded_flat_onto_itself_is_refused_before_writing(tmp_path):
     assert len(folded_flat_edges(folded, grid.edges, grid.edge_tris, grid.triangles)) == 0
 
 
+def test_an_inverted_sliver_in_a_tilted_float32_sheet_is_folded_flat():
+    """An inverted triangle whose far vertex lies 1.7 mm past its edge, in a sheet turned out
+    of every axis and stored in float32 (a fuzzed scene: it froze every response and diverged),
+    is off flat by the rounding only (~2e-5 rad, past the angle tolerance alone): found."""
+    from warp_cloth import TriMesh
+    from warp_cloth.collision.check import folded_flat_edges
+
+    grid = TriMesh.grid(4, 4, size=0.4, plane="xz", origin=(-0.2, 0.0, -0.2))
+    x = grid.vertices.copy()
+    x[6, 0] += 0.1017  # the interior vertex (1, 1) 1.7 mm past the column at x = 0
+    assert len(folded_flat_edges(x, grid.edges, grid.edge_tris, grid.triangles)) > 0
+    found = 0
+    for seed in range(8):
+        rot = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))[0]
+        tilted = (x @ rot.T + 0.3).astype(np.float32)
+        found += len(folded_flat_edges(tilted, grid.edges, grid.edge_tris, grid.triangles)) > 0
+    assert found == 8
+
+
+def _t_junction(lift=0.0):
+    """A triangle over a pair of triangles whose shared vertex ``m`` lies on the big one's base
+    edge (a T-junction; ``lift`` moves it off the edge, away from the big triangle)."""
+    from warp_cloth import TriMesh
+
+    v = np.array([[0.0, 1.0, 0.0], [0.2, 1.0, 0.0], [0.1, 1.0, 0.2], [0.1, 1.0, -lift],
+                  [0.1, 1.0, -0.2]])
+    return TriMesh(v, np.array([[0, 1, 2], [0, 3, 4], [3, 1, 4]]), name="tee")
+
+
+@pytest.mark.parametrize("case", ["t-junction", "inverted"])
+def test_a_rest_mesh_that_touches_itself_is_refused_naming_the_pair(case):
+    """Two primitives of one piece sharing no vertex that touch in the rest shape (a vertex on
+    another triangle's edge; an inverted triangle folded onto its neighbours) keep nothing of the
+    thickness and every path through them meets the fail-safe: a fuzzed sheet with one inverted
+    triangle had the whole cloth returned to its start, velocities zeroed, in 301 of its first
+    302 steps and froze as diverged. Refused when self-collision is made, naming the pair; the
+    same mesh with the vertex 0.2 thickness off the edge is accepted (it keeps half of that)."""
+    from warp_cloth import ClothModel, TriMesh
+
+    h = 0.005
+    if case == "t-junction":
+        mesh, ok = _t_junction(), _t_junction(lift=0.2 * h)
+        name = r"vertex 3 lies 0 m from triangle 0 \(vertices 0, 1, 2\), which it is not a corner"
+    else:
+        grid = TriMesh.grid(4, 4, size=0.4, plane="xz", origin=(-0.2, 1.0, -0.2))
+        x = grid.vertices.copy()
+        x[6, 0] += 0.12
+        mesh, ok = TriMesh(x, grid.triangles, name="tee"), grid
+        name = r"(vertex \d+ lies|edges \d+-\d+ and \d+-\d+, which share no vertex, lie)"
+    with pytest.raises(ValueError, match=rf"tee: {name}.* in the rest shape .*overlaps itself"):
+        CollisionStage(ClothModel(mesh, density=0.15), [], thickness=h, self_collision=True)
+    from warp_cloth import Plane, make_solver
+
+    model = ClothModel(mesh, density=0.15)  # without self-collision: fine
+    make_solver("explicit", model, collision=CollisionStage(model, [Plane()], thickness=h))
+    CollisionStage(ClothModel(ok, density=0.15), [], thickness=h, self_collision=True)
+
+
 def test_separate_pieces_starting_within_the_thickness_are_refused():
     """Separate pieces whose vertices start closer than the thickness (a seam written twice
     0.1 mm apart; sheets stacked 1 mm apart) were pushed to the thickness in the first step and
