@@ -1760,3 +1760,66 @@ def test_contact_scenes_give_implicit_euler_their_newton_cap_unless_asked_otherw
     assert build_scene("hanging", solver="implicit", res=4,
                        frames=1).solver.newton_iterations == own
     assert build_scene("table", solver="pd", res=4, frames=1).solver.iterations == 10
+
+
+@wp.kernel
+def _squeeze_kernel(x: wp.array(dtype=wp.vec3), to: wp.array(dtype=wp.vec3),
+                    flag: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    x[i] = to[i]
+    flag[0] = 1
+
+
+class _SqueezeAfterContact:
+    """A correction whose pass after contact moves the cloth to ``to`` (as a limit's sweeps
+    can: they project the response's entries but meet no new pair) and says it moved."""
+
+    def __init__(self, to):
+        self.to = wp.array(to, dtype=wp.vec3)
+        self._flag = wp.zeros(1, dtype=wp.int32)
+
+    def apply(self, state, x_start, dt):
+        pass
+
+    def after_contact(self, state, x_start, dt, stage):
+        self._flag.zero_()
+        wp.launch(_squeeze_kernel, self.to.shape[0], [state.x, self.to, self._flag])
+        return True
+
+    def moved_into(self, flag):
+        wp.copy(flag, self._flag)
+
+
+@pytest.mark.parametrize("solver_name,self_collision", [("implicit", False), ("pd", False),
+                                                        ("pbd", False), ("implicit", True)])
+def test_a_pass_after_contact_that_pulls_a_cloth_edge_onto_a_box_edge_is_answered(
+        solver_name, self_collision):
+    """A cloth edge across a box's edge, its ends on the two faces at the thickness: the
+    limits' pass after the response (here a stand-in that moves the ends toward the box edge)
+    left the edge 0.42 thickness from the box's edge, and a randomized scene (implicit Euler,
+    a StrainLimit, a sheet thrown at a moving box) cut 3.4-8 mm into the box for four frames
+    so, every vertex outside. The sharp features are detected again on the step's path after
+    such a pass (`CollisionStage.pairs_again`): the edge ends the step the thickness clear,
+    with self-collision (the rounds after contact) or without."""
+    from warp_cloth import ClothModel, TriMesh
+    from warp_cloth.collision import Box
+
+    h, hx = 0.005, 0.1
+    ends = [np.array([hx - 0.03, hx + h + 0.03]), np.array([hx + h + 0.03, hx - 0.03])]
+    squeezed = [np.array([hx - 0.002, hx + h]), np.array([hx + h, hx - 0.002])]
+    strip = lambda p: np.array([[*p[0], -0.02], [*p[1], -0.02], [*p[0], 0.02], [*p[1], 0.02]])
+    mesh = TriMesh(strip(ends), np.array([[0, 1, 3], [0, 3, 2]]), name="strip")
+    model = ClothModel(mesh, density=0.2, stretch_stiffness=1e-3, gravity=(0.0, 0.0, 0.0),
+                       damping=0.0)
+    stage = CollisionStage(model, [Box((hx, hx, 0.2))], thickness=h, friction=0.0,
+                           self_collision=self_collision)
+    assert stage.has_pairs
+    solver = make_solver(solver_name, model, collision=stage)
+    solver.add_correction(_SqueezeAfterContact(strip(squeezed)))
+    state = model.state()
+    solver.step(state, 1.0 / 240.0)
+    x = state.x.numpy().astype(np.float64)
+    for i, j in ((0, 1), (2, 3)):  # each cloth edge across the box's edge, in its plane
+        p, d = x[i, :2] - hx, x[j, :2] - x[i, :2]
+        t = np.clip(-(p @ d) / (d @ d), 0.0, 1.0)
+        assert np.linalg.norm(p + t * d) >= h * (1.0 - 2e-3)

@@ -9,7 +9,8 @@ A step is composed, in this order, of only the parts the scene uses (GUIDE.md):
        (``after_contact``: only where the response left an element outside its bound; the last
        self-collision response's contacts projected too)
        -> if those sweeps moved anything and the stage has self-collision: its response again,
-          on the path from before them (`Solver._self_again`), and the two again while the
+          on the path from before them (`Solver._self_again`, after the sharp obstacle features
+          again on the step's path: `CollisionStage.pairs_again`), and the two again while the
           sweeps move anything (`AFTER_CONTACT_ROUNDS`) -> time += dt
 
 Each correction changes positions and adds the same change divided by dt to the velocities
@@ -107,8 +108,9 @@ class Solver:
             self._x_start = wp.zeros(self.model.num_vertices, dtype=wp.vec3, device=self.device)
 
     def _self_again_alloc(self) -> None:
-        """The arrays of `_self_again` (when the stage has self-collision and there are
-        corrections: allocated with them, never inside a captured step)."""
+        """The arrays of `_self_again` (when the stage has self-collision or sharp obstacle
+        features and there are corrections: allocated with them, never inside a captured
+        step)."""
         if getattr(self, "_x_mid", None) is None:
             self._x_mid = wp.zeros(self.model.num_vertices, dtype=wp.vec3, device=self.device)
             self._limit_moved = wp.zeros(1, dtype=wp.int32, device=self.device)
@@ -136,20 +138,29 @@ class Solver:
         whose pinned corner a rising floor passed ran eight rounds of stalled passes in every
         step), up to `AFTER_CONTACT_ROUNDS`."""
         self._self_again_prepare(state)
+        self._limits_after(state, dt, stage, afters)
+        wp.capture_if(self._limit_moved, self._self_again, state=state, dt=dt, stage=stage,
+                      sc=sc)
+        launch(common.after_round_kernel, 1, [self._limit_moved, self._limit_stalled,
+                                              self._after, int(AFTER_CONTACT_ROUNDS)],
+               device=self.device)
+
+    def _limits_after(self, state, dt, stage, afters) -> None:
+        """The limits' pass after contact, each limit raising ``_limit_moved`` if it moved the
+        cloth and ``_limit_stalled`` if it stalled."""
         for c in afters:
             ran = c.after_contact(state, self._x_start, dt, stage)
             if ran and hasattr(c, "moved_into"):
                 c.moved_into(self._limit_moved)
             if ran and hasattr(c, "stalled_into"):
                 c.stalled_into(self._limit_stalled)
-        wp.capture_if(self._limit_moved, self._self_again, state=state, dt=dt, sc=sc)
-        launch(common.after_round_kernel, 1, [self._limit_moved, self._limit_stalled,
-                                              self._after, int(AFTER_CONTACT_ROUNDS)],
-               device=self.device)
 
-    def _self_again(self, state, dt, sc) -> None:
-        """The self-collision response on the path the limits' pass after contact moved the
-        cloth along (from positions free of crossings, so its fall-backs end free of them)."""
+    def _self_again(self, state, dt, stage, sc) -> None:
+        """After the limits' pass after contact moved the cloth: the sharp obstacle features
+        on the step's path (`CollisionStage.pairs_again`; none without them), then the
+        self-collision response on the path the pass moved the cloth along (from positions free
+        of crossings, so its fall-backs end free of them)."""
+        stage.pairs_again(state, self._x_start, dt)
         sc.resolve(state, self._x_mid, dt)
 
     def add_correction(self, c) -> None:
@@ -174,7 +185,8 @@ class Solver:
         self.corrections.append(c)
         self.capturable = self.capturable and getattr(c, "capturable", True)
         self._need_start()
-        if getattr(self.collision, "self_collision", None) is not None:
+        if (getattr(self.collision, "self_collision", None) is not None
+                or getattr(self.collision, "has_pairs", False)):
             self._self_again_alloc()
 
     def set_collision(self, collision) -> None:
@@ -188,7 +200,7 @@ class Solver:
         sc = getattr(self.collision, "self_collision", None)
         if sc is not None:
             sc.layer_frames = self.self_contact_layer_frames
-        if self.corrections and sc is not None:
+        if self.corrections and (sc is not None or getattr(self.collision, "has_pairs", False)):
             self._self_again_alloc()
 
     #: the self-contacts' velocity rule in the frames of the layers that meet
@@ -264,9 +276,16 @@ class Solver:
             stage.resolve(state, self._x_start, dt, position_friction=self.friction_by_position)
             afters = [c for c in self.corrections if getattr(c, "after_contact", None)]
             sc = getattr(stage, "self_collision", None) if afters else None
-            if sc is None:
+            if sc is None and not (afters and getattr(stage, "has_pairs", False)):
                 for c in afters:  # what friction's response stretched, within contact
                     c.after_contact(state, self._x_start, dt, stage)
+            elif sc is None:
+                # the same, then the sharp features again if the pass moved anything: its
+                # sweeps meet no new cloth edge against an obstacle edge (`pairs_again`)
+                self._self_again_prepare(state)
+                self._limits_after(state, dt, stage, afters)
+                wp.capture_if(self._limit_moved, stage.pairs_again, state=state,
+                              x_start=self._x_start, dt=dt)
             else:
                 # rounds of the limits' pass and the self-collision response on its path, while
                 # a pass moved anything (a device-side loop: capturable)
