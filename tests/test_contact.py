@@ -1155,3 +1155,30 @@ def test_friction_guess_of_a_vertex_on_two_obstacles_does_not_depend_on_the_reco
     (xa, la), (xb, lb) = guess(np.arange(n)), guess(np.arange(n)[::-1])
     assert np.array_equal(xa, xb) and np.array_equal(la, lb)
     assert np.linalg.norm(xa - pred[0]) > 1e-4  # the guess did move the vertex
+
+
+def test_a_pin_that_an_obstacle_passes_is_reported_and_its_frames_not_run_again(capsys):
+    """A sheet pinned at a corner over a floor that rises past the pin (PBD, its stretch guard
+    a StrainLimit): a pin follows its target and contact does not move it, so the cloth beside
+    it is pulled into the floor and the frames fail their checks whatever the steps. The run
+    said nothing of the pin and ran such frames three times (a 10 x 10 sheet: 16-19 s a frame
+    instead of 0.1 s). Now the first frame of the stretch warns, naming the vertex and the
+    obstacle, `RunStats` counts the frames and the depth, and no frame runs again for it."""
+    from warp_cloth import Scene
+    from warp_cloth.collision import CollisionStage, KeyframePath, Motion, Plane
+
+    mesh = TriMesh.grid(6, 6, size=0.3, plane="xz", origin=(-0.15, 0.1, -0.15))
+    model = ClothModel(mesh, density=0.2, stretch_stiffness=5000.0, pins=[0], damping=0.1)
+    floor = Plane(motion=Motion(path=KeyframePath([0.0, 0.1, 0.5],
+                                                  [[0, 0, 0], [0, 0, 0], [0, 0.3, 0]])))
+    stage = CollisionStage(model, [floor], thickness=0.004, friction=0.5)
+    scene = Scene(model, make_solver("pbd", model, collision=stage), fps=40, frames=16)
+    stats = scene.run(None, quiet=False, progress=False, energy=False)
+    err = capsys.readouterr().err
+    # the floor passes the pin at 0.1 + 0.4 (0.1 / 0.3) s, frame 9; 0.4 - 0.1 m deep at the end
+    assert 5 <= stats.pinned_inside_frames <= 7, stats
+    assert stats.pinned_depth == pytest.approx(0.3 * (15 / 40 - 0.1) / 0.4 + 0.0 - 0.1, abs=2e-3)
+    assert stats.retried_frames == 0, stats
+    assert err.count("pinned vertex(es) inside an obstacle") == 1, err
+    assert "(vertex 0, obstacle 0: Plane" in err, err
+    assert "pinned vertices inside an obstacle in" in stats.summary()

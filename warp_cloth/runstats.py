@@ -63,6 +63,11 @@ class RunStats:
     #: on stderr unless quiet; `CollisionStage.frame_end`), so that a quiet run (a sweep's, a
     #: benchmark's) still says so
     collision_frames: int = 0
+    #: frames that ended with a pinned vertex inside an obstacle (deeper than 0.1 mm), and the
+    #: deepest (m): a pin follows its target, contact does not move it (`scene._PinnedInside`;
+    #: reported on stderr at the first frame of each stretch unless quiet)
+    pinned_inside_frames: int = 0
+    pinned_depth: float = 0.0
     extra: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -90,5 +95,7 @@ class RunStats:
                if self.retried_frames else "")
             + (f"; {self.collision_frames} frames with a collision-stage warning"
                if self.collision_frames else "")
+            + (f"; pinned vertices inside an obstacle in {self.pinned_inside_frames} frames "
+               f"(deepest {1e3 * self.pinned_depth:.3g} mm)" if self.pinned_inside_frames else "")
             + (f"; wrote {self.out}" if self.out else "")
         )

@@ -180,6 +180,42 @@ def _check_obstacle_start(model, state, stage) -> None:
             "or within the contact thickness of it is fine)")
 
 
+class _PinnedInside:
+    """The pinned vertices inside an obstacle (deeper than `PENETRATION_TOLERANCE`), measured
+    on the host once a frame (`Scene.run`): a pin follows its target and contact does not move
+    it, so a path that drives one into an obstacle (or an obstacle that passes one) pulls the
+    cloth beside it in, and running the frame again with more steps changes nothing (measured:
+    a sheet whose pinned corner a rising floor passed ran each frame three times, 16-19 s a
+    frame, with no word of the pins). Call with the frame's positions (simulation frame) and
+    time: ``None`` or ``(count, depth m, obstacle index, vertex)``."""
+
+    def __init__(self, model, contact):
+        from .collision.contact import PENETRATION_TOLERANCE
+
+        self.tolerance = PENETRATION_TOLERANCE
+        self.contact = contact
+        used = np.zeros(model.num_vertices, dtype=bool)
+        used[np.asarray(model.mesh.triangles).reshape(-1)] = True
+        self.pins = np.flatnonzero((np.asarray(model.inverse_masses) == 0) & used)
+
+    def __call__(self, x, t: float):
+        sd = np.asarray(self.contact.signed_distances(np.asarray(x)[self.pins], t))
+        if not sd.size or sd.min() >= -self.tolerance:
+            return None
+        k, j = np.unravel_index(int(np.argmin(sd)), sd.shape)
+        return (int((sd.min(axis=0) < -self.tolerance).sum()), -float(sd[k, j]), int(k),
+                int(self.pins[j]))
+
+    def describe(self, found) -> str:
+        n, depth, k, v = found
+        ob = self.contact.obstacles[k]
+        return (f"{n} pinned vertex(es) inside an obstacle, the deepest {1e3 * depth:.3g} mm "
+                f"(vertex {v}, obstacle {k}: {type(ob).__name__} "
+                f"{getattr(ob, 'name', None) or k}): a pin follows its target and contact does "
+                "not move it, so the cloth beside it is pulled in (its frames are not run again "
+                "for that); keep the pins' targets outside the obstacles")
+
+
 class Scene:
     """A runnable scene.
 
@@ -304,21 +340,24 @@ class Scene:
         s0 = meter(snap, energy=False).max_strain
         return (s0, s1) if s1 - s0 > RETRY_STRAIN_RISE else None
 
-    def _stage_frame_end(self, stage, state, snap, meter=None, short0: int = 0):
+    def _stage_frame_end(self, stage, state, snap, meter=None, short0: int = 0,
+                         pinned: bool = False):
         """The collision stage's report on the frame just run (`CollisionStage.frame_end`), and
         the frame run again from ``snap`` (its start) with twice the steps, up to ``retries``
         times, while a step of it returned the whole cloth to its start or dropped contacts, or
         its impact zones held most of the cloth (``stage.frame_failed``), or the solver left a
         step short of its tolerance with the cloth stretched past `RETRY_STRAIN` in the frame
-        (``meter`` measures it; ``short0``: the solver's short steps before the frame);
+        (``meter`` measures it; ``short0``: the solver's short steps before the frame), unless
+        ``pinned``: a pinned vertex is inside an obstacle (`_PinnedInside`: more steps do not
+        move it);
         self-collision then responds after every step (no spans). Returns the times it ran again
         and ``(kind, message, regrown)`` triples to report (the attempts that failed as
         notes)."""
         out = [("warning", msg, regrown) for msg, regrown in stage.frame_end()]
         k, n = 0, self.substeps
         stretched = self._solve_stretched(state, snap, meter, short0)
-        while snap is not None and k < self.retries and (getattr(stage, "frame_failed", 0)
-                                                          or stretched is not None):
+        while snap is not None and k < self.retries and not pinned and (
+                getattr(stage, "frame_failed", 0) or stretched is not None):
             k += 1
             n = self.substeps << k
             out = [("note", msg, regrown) for _, msg, regrown in out]
@@ -435,6 +474,10 @@ class Scene:
         stage = getattr(solver, "collision", None)
         if stage is not None and hasattr(stage, "restart_span"):
             stage.restart_span()
+        pinned_probe = None
+        if getattr(stage, "contact", None) is not None and len(model.pins):
+            pinned_probe = _PinnedInside(model, stage.contact)
+        pinned_frames, pinned_depth, pinned_before = 0, 0.0, False
         graph = None
         no_graph = False
         # the frame's start, kept while self-collision (or contact) can fail a step (`retries`)
@@ -486,10 +529,21 @@ class Scene:
                     else:
                         for _ in range(self.substeps):
                             solver.step(state, self.dt)
+                    pinned = None
+                    if pinned_probe is not None:  # pins inside an obstacle (a host read)
+                        pinned = pinned_probe(state.x.numpy(), frame / self.fps)
+                        if pinned is not None:
+                            pinned_frames += 1
+                            pinned_depth = max(pinned_depth, pinned[1])
+                            if not quiet and not pinned_before:  # once a stretch of frames
+                                bar.note(f"warning: frame {frame}: "
+                                         f"{pinned_probe.describe(pinned)}")
+                        pinned_before = pinned is not None
                     if stage is not None:
                         # what the stage reports (host reads), and the frame run again with more
                         # steps where a step of it failed (`_stage_frame_end`)
-                        retried, msgs = self._stage_frame_end(stage, state, snap, meter, short0)
+                        retried, msgs = self._stage_frame_end(stage, state, snap, meter, short0,
+                                                              pinned is not None)
                         retried_frames += retried > 0
                         collision_frames += any(kind == "warning" and msg is not None
                                                 for kind, msg, _ in msgs)
@@ -606,7 +660,8 @@ class Scene:
             obstacle_depth=ob_depth if ob_checker is not None else None,
             min_clearance=clearance if ob_checker is not None else None,
             short_frames=short_frames, retried_frames=retried_frames,
-            collision_frames=collision_frames,
+            collision_frames=collision_frames, pinned_inside_frames=pinned_frames,
+            pinned_depth=pinned_depth,
         )
 
 
