@@ -118,13 +118,14 @@ class SymplecticEuler(Solver):
         )
 
     @staticmethod
-    def stiffness_row_sums(model, springs: bool = True):
+    def stiffness_row_sums(model, springs: bool = True, bending: bool = True, only=None):
         """Per-vertex Gershgorin row sums of the stiffness and damping matrices (N/m, N s/m).
 
         Returns ``(K, C)``, two (N,) arrays: ``K_i = sum_j ||H_ij||`` (3x3 block norms) over every
         stiff term of the model, ``C_i`` the same for the spring dashpots. ``springs=False``
         leaves the springs and their dashpots out (the force terms only: PBD, whose springs are
-        constraints).
+        constraints); ``bending=False`` leaves the bending terms out; ``only``: of the force
+        terms, that one alone.
 
         - springs: ``||H_e|| <= k`` (equal at rest), so each spring adds ``2 k`` to both ends;
         - quadratic bending (exact, constant ``Q = w w^T (x) I``): ``|w_i| sum_j |w_j|`` per quad;
@@ -146,7 +147,9 @@ class SymplecticEuler(Solver):
             for col in (0, 1):
                 np.add.at(K, pairs[:, col], 2.0 * k)
                 np.add.at(C, pairs[:, col], 2.0 * model.spring_damping)
-        for term in model.force_terms:
+        for term in model.force_terms if bending else ():
+            if only is not None and term is not only:
+                continue
             if isinstance(term, QuadraticBending) and term.num_quads and term.k > 0:
                 g = np.abs(term.weights_np)  # (B, 4): ||w_i w_j I|| = |w_i| |w_j|
             elif isinstance(term, DihedralBending) and term.num_quads and term.k > 0:
@@ -188,6 +191,41 @@ class SymplecticEuler(Solver):
         omega = math.sqrt(lam)
         zeta = gamma / (2.0 * omega)
         return 2.0 / omega * (math.sqrt(1.0 + zeta * zeta) - zeta)
+
+    @staticmethod
+    def stiffest(model) -> dict | None:
+        """What sets the stable step (`stable_dt`): the free vertex of the largest ``K_i /
+        m_i``, the stiff term with the largest share of its row (``"springs"``, ``"quadratic
+        bending"``, ``"dihedral bending"``), the smallest angle (degrees) of the triangles at that vertex (a sliver
+        makes bending stiff: its cotangent weights grow as one over its angle), and the stable
+        step of the springs alone (inf without springs). None when nothing is stiff."""
+        free = model.inverse_masses > 0
+        if not free.any():
+            return None
+        K, _ = SymplecticEuler.stiffness_row_sums(model)
+        w = np.where(free, model.inverse_masses, 0.0)
+        if not (K * w).max() > 0:
+            return None
+        v = int(np.argmax(K * w))
+        Ks, _ = SymplecticEuler.stiffness_row_sums(model, bending=False)
+        share = {"springs": Ks[v]}
+        for term in model.force_terms:
+            one = SymplecticEuler.stiffness_row_sums(model, springs=False, only=term)[0]
+            if one[v] > 0:
+                share[f"{getattr(term, 'name', type(term).__name__)} bending"] = one[v]
+        x = np.asarray(model.mesh.vertices, dtype=np.float64)
+        angle = 180.0
+        for tri in np.asarray(model.mesh.triangles)[(np.asarray(model.mesh.triangles) == v).any(1)]:
+            for k in range(3):
+                a, b, c = x[tri[k]], x[tri[(k + 1) % 3]], x[tri[(k + 2) % 3]]
+                u, t = b - a, c - a
+                nu, nt = np.linalg.norm(u), np.linalg.norm(t)
+                if nu > 0 and nt > 0:
+                    angle = min(angle, float(np.degrees(np.arccos(np.clip(u @ t / (nu * nt),
+                                                                           -1.0, 1.0)))))
+        lam = float((Ks * w).max())
+        return {"vertex": v, "term": max(share, key=share.get), "min_angle": angle,
+                "springs_dt": 2.0 / math.sqrt(lam) if lam > 0 else math.inf}
 
     def suggest_substeps(self, frame_dt: float) -> int:
         """``ceil(frame_dt / (0.5 stable_dt))``: half the stability bound, for margin."""
