@@ -510,6 +510,10 @@ class Scene:
             setup = _time.perf_counter() - t_setup
             e0 = m0.energy
             mfin = m0
+            for msg, _ in (stage.cloth_stretched(m0.max_strain)  # a cloth that starts stretched
+                           if hasattr(stage, "cloth_stretched") else ()):
+                if not quiet:
+                    bar.note(f"note: frame 0: {msg}")
             for frame in range(self.frames):
                 if frame > 0:
                     t0 = _time.perf_counter()
@@ -570,6 +574,14 @@ class Scene:
                             graph = None
                             eager_until = frame + 1 + RETRY_EAGER_FRAMES
                     mfin = meter(state, energy=energy)
+                    # a cloth stretched past what the obstacles' sharp features were chosen for
+                    # gets them chosen again (`CollisionStage.cloth_stretched`)
+                    for msg, regrown in (stage.cloth_stretched(mfin.max_strain)
+                                         if hasattr(stage, "cloth_stretched") else ()):
+                        if not quiet:
+                            bar.note(f"note: frame {frame}: {msg}")
+                        if regrown:
+                            graph = None
                     dtw = _time.perf_counter() - t0
                     if frame == 1:
                         first = dtw

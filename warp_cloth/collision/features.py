@@ -1089,11 +1089,16 @@ class FeatureContact:
             `MAX_ROUNDS`).
     """
 
-    def __init__(self, model, contact, rounds: int = 4):
+    def __init__(self, model, contact, rounds: int = 4, stretch: float = 1.0):
         self.model = model
         self.device = d = model.device
         self.contact = contact
         self.rounds = int(rounds)
+        #: the cloth's edges are taken this many times their rest length (and `STRETCH_MARGIN`
+        #: more) in choosing the sharp features (`CollisionStage.cloth_stretched` raises it)
+        self.stretch = float(stretch)
+        #: the longest rest edge of the cloth (0: no feature to choose again)
+        self.rest_max = 0.0
         self.active = False
         self.num_vertices = self.num_edges = 0
         if contact is None:
@@ -1112,7 +1117,8 @@ class FeatureContact:
         rest = _edge_lengths(model)
         # the longest cloth edge, stretched by STRETCH_MARGIN: ridges it cannot cut into by
         # more than half the thickness are skipped
-        self.length = STRETCH_MARGIN * float(rest.max()) if len(rest) else 0.0
+        self.rest_max = float(rest.max()) if len(rest) else 0.0
+        self.length = STRETCH_MARGIN * self.stretch * self.rest_max
         local, pose_of, src, fedges, fnormals, halves, vhalves, vnormals = ([] for _ in range(8))
         radii = []
         #: record room for the sphere centres' entries (`capacity`)
@@ -1130,7 +1136,7 @@ class FeatureContact:
         # contacts: their friction (`friction`) carries the sheet then. Before it had any, with
         # the stretch margin, the 10 x 10 sheet (0.8 m) on a 0.3 m sphere that spins (a rest
         # diagonal cuts 0.3 mm into it) was no longer carried round under PBD and PD
-        L0 = contact.chord
+        L0 = contact.chord * self.stretch
         areas = model.mesh.triangle_areas()
         #: the sphere centres kept as sharp vertices: the first ones (`respond_spheres_again`)
         self.num_spheres = 0

@@ -53,6 +53,16 @@ SUBSTEP_TRAVEL = 0.25
 __all__ = ["CollisionStage", "DEFAULT_SOLVE_MARGIN", "DEFAULT_SELF_MOTION"]
 
 
+#: `CollisionStage.cloth_stretched`: the sharp features are chosen again once the cloth's
+#: largest edge stretch passes this share of the stretch they were chosen for (within their
+#: `features.STRETCH_MARGIN`), ...
+FEATURE_RECHOOSE = 1.1
+#: ... for this much more than the stretch seen, ...
+FEATURE_HEADROOM = 1.2
+#: ... and for at most this stretch (the runner's divergence guard stops at 1,000 % strain)
+FEATURE_MAX_STRETCH = 11.0
+
+
 def _positive(name, value) -> float:
     return positive_finite(value, name, "metres")
 
@@ -219,6 +229,7 @@ class CollisionStage:
         from .features import FeatureContact
 
         self.features = FeatureContact(model, contact if edges else None)
+        self._features_on = bool(edges)
         # self-collision (off unless asked for: it costs a broad phase over the cloth every step;
         # the built-in scenes ask for it)
         self.self_collision = None
@@ -606,6 +617,46 @@ class CollisionStage:
         self._iter_threads = record_threads(cap, self.device)
         return [(f"{new} self-contacts did not fit the iterations' record (they were resolved "
                  f"after the step); its room is doubled to {cap} entries", True)]
+
+    def cloth_stretched(self, strain: float) -> list:
+        """The runner's frame-end call with the cloth's largest edge strain: once it passes
+        `FEATURE_RECHOOSE` of the stretch the sharp features were chosen for (its rest length
+        at first), they are chosen again for `FEATURE_HEADROOM` times the stretch (at most
+        `FEATURE_MAX_STRETCH`), and the records grow to their room. ``(message, regrown)``
+        pairs (regrown: a recorded graph must be recorded again). The features are the ridges a
+        straight cloth edge of the longest length can dip under (module docstring of
+        `warp_cloth.collision.features`): a cloth dragged by a moving lumpy mesh against its
+        pinned edge, stretched to 245 %, had the mesh's ridges (not sharp for its rest edges)
+        through its triangles in 13-14 of 40 frames under every solver."""
+        f = self.features
+        if not self._features_on or f.rest_max <= 0.0 or not math.isfinite(strain):
+            return []
+        s = 1.0 + max(float(strain), 0.0)
+        if s <= FEATURE_RECHOOSE * f.stretch:
+            return []
+        new_s = min(FEATURE_HEADROOM * s, FEATURE_MAX_STRETCH)
+        if new_s <= f.stretch:
+            return []
+        from .features import FeatureContact
+
+        before = (f.num_vertices, f.num_edges)
+        self.features = f = FeatureContact(self.model, self.contact, f.rounds, stretch=new_s)
+        if f.active:
+            cap = f.capacity
+            if self.pair_record is None or self.pair_record.vertex.shape[0] < cap:
+                self.pair_record = make_record(cap, self.device)
+                self._dropped_seen[1] = 0
+            need = self.model.num_vertices * len(self.contact.obstacles) + cap
+            if need > self.capacity:
+                self.capacity = need
+                self.record = make_record(need, self.device)
+                self._dropped_seen[0] = 0
+                for callback in self._regrow_listeners:
+                    callback(self.record)
+        return [(f"the cloth is stretched to {100.0 * (s - 1.0):.3g} %: the obstacles' sharp "
+                 f"features are chosen again for cloth edges {new_s:.3g} times their rest "
+                 f"length ({f.num_vertices} vertices and {f.num_edges} edges; {before[0]} and "
+                 f"{before[1]} before)", True)]
 
     def on_record_regrown(self, callback) -> None:
         """``callback(record)`` after `frame_end` replaces `record` with a larger one."""

@@ -186,8 +186,8 @@ class Solver:
         self.capturable = self.capturable and getattr(c, "capturable", True)
         self._need_start()
         if (getattr(self.collision, "self_collision", None) is not None
-                or getattr(self.collision, "has_pairs", False)):
-            self._self_again_alloc()
+                or getattr(self.collision, "contact", None) is not None):
+            self._self_again_alloc()  # (obstacles: their sharp features may come later)
 
     def set_collision(self, collision) -> None:
         """Give the solver its collision stage (one per solver: it owns every obstacle)."""
@@ -200,7 +200,8 @@ class Solver:
         sc = getattr(self.collision, "self_collision", None)
         if sc is not None:
             sc.layer_frames = self.self_contact_layer_frames
-        if self.corrections and (sc is not None or getattr(self.collision, "has_pairs", False)):
+        if self.corrections and (sc is not None
+                                 or getattr(self.collision, "contact", None) is not None):
             self._self_again_alloc()
 
     #: the self-contacts' velocity rule in the frames of the layers that meet
