@@ -15,6 +15,7 @@ refusal (a clear error: bad input or a stop of the divergence guard) or FAILURE 
 the file, the cloth through itself, a free vertex nearer an obstacle than the thickness less
 0.1 mm, a cloth edge inside an obstacle or an obstacle edge through the cloth), with ``notes``:
 FORCED:pin-in-obstacle (a pin driven into an obstacle: the cloth beside it cannot stay out),
+FORCED:obstacles-pinch (two obstacles within two thicknesses of each other in a failing frame),
 strain>15% (unpinned), slow (> 3 s a frame). ``--log FILE`` appends the row. A loop over seeds:
 ``for s in $(seq 3000 3299); do python docs/bench/probes/fuzz.py $s --log fz.jsonl; done``.
 Results: docs/bench/robustness.md.
@@ -438,6 +439,10 @@ if model is not None and os.path.exists(out):
         status = "FAILURE"
     notes = []
     if row.get("pin_clear_mm", 1e9) < th * 1e3: notes.append("FORCED:pin-in-obstacle")
+    from fuzz_check import obstacles_pinch
+    bad = sorted({f for k, v in viol.items() if k != "nan" for f in v})
+    if len(world_specs) > 1 and any(obstacles_pinch(world_specs, f / fps, 2 * th) for f in bad[:8]):
+        notes.append("FORCED:obstacles-pinch")  # two obstacles within two thicknesses
     if maxstrain > 0.15 and pin_path is None: notes.append("strain>15%")
     if len(pts) and wall / len(pts) > 3: notes.append("slow")
     if notes: row["notes"] = notes

@@ -226,3 +226,51 @@ def check_frame(P, tris, edges, free, obstacles, t, th, rest_len):
             if ds.min() < -eps - 1e-6:
                 r.setdefault("edge_inside", {})[k] = float(ds.min())
     return r
+
+
+def surface_samples(ob, c, R, n=12):
+    """Points on an obstacle's surface (world), for `obstacles_pinch`: a mesh's vertices, a box's
+    face grids, a sphere's Fibonacci points; none for a plane (unbounded)."""
+    if ob["kind"] == "mesh":
+        return (ob["V"] * ob.get("scale", 1.0)) @ R.T + c
+    if ob["kind"] == "sphere":
+        k = np.arange(n * n) + 0.5
+        phi = np.arccos(1 - 2 * k / (n * n)); th = np.pi * (1 + 5 ** 0.5) * k
+        return c + ob["r"] * np.stack([np.cos(th) * np.sin(phi), np.cos(phi), np.sin(th) * np.sin(phi)], 1)
+    if ob["kind"] == "box":
+        h = np.asarray(ob["h"], float); g = np.linspace(-1, 1, n); out = []
+        for a in range(3):
+            b, e = [i for i in range(3) if i != a]
+            for s in (-1, 1):
+                U, W = np.meshgrid(g, g)
+                L = np.zeros((U.size, 3)); L[:, a] = s; L[:, b] = U.ravel(); L[:, e] = W.ravel()
+                out.append(L * h)
+        return np.concatenate(out) @ R.T + c
+    return np.zeros((0, 3))
+
+
+def obstacles_pinch(obstacles, t, gap):
+    """Whether two obstacles come within ``gap`` of each other (or into each other) at time t:
+    cloth between them cannot keep its thickness from both (a forced failure)."""
+    poses = [pose(ob, t) for ob in obstacles]
+    for i, a in enumerate(obstacles):
+        S = surface_samples(a, *poses[i])
+        if not len(S):
+            continue
+        for j, b in enumerate(obstacles):
+            if j == i:
+                continue
+            c, R = poses[j]
+            if b["kind"] == "mesh":
+                V = (b["V"] * b.get("scale", 1.0)) @ R.T + c
+                lo, hi = V.min(0) - gap, V.max(0) + gap
+                near = np.all((S >= lo) & (S <= hi), axis=1)
+                if not near.any():
+                    continue
+                d = mesh_dist(S[near], V, b["T"])
+                d = np.where(np.abs(winding(S[near], V, b["T"])) > 0.5, -d, d)
+            else:
+                d = sdf_analytic(b, c, R, S)
+            if d.min() < gap:
+                return True
+    return False
