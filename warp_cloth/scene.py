@@ -175,14 +175,19 @@ def _check_obstacle_start(model, state, stage) -> None:
     k, j = np.unravel_index(int(np.argmin(sd)), sd.shape)
     depth = -float(sd[k, j])
     if depth > PENETRATION_TOLERANCE:
-        ob = contact.obstacles[k]
-        what = f"{type(ob).__name__} {getattr(ob, 'name', None) or k}"
+        what = _obstacle_words(contact, k)
         inside = int((sd.min(axis=0) < -PENETRATION_TOLERANCE).sum())
         raise ValueError(
             f"{model.mesh.name}: vertex {int(free[j])} starts {1e3 * depth:.2f} mm inside "
             f"obstacle {k} ({what}; {inside} vertices start inside an obstacle); contact would "
             "throw such a cloth out of it: start the cloth outside the obstacles (on a surface "
             "or within the contact thickness of it is fine)")
+
+
+def _obstacle_words(contact, k: int) -> str:
+    """Obstacle ``k`` of an `ObstacleContact` by kind and name, for messages."""
+    ob = contact.obstacles[k]
+    return f"{type(ob).__name__} {getattr(ob, 'name', None) or k}"
 
 
 class _PinnedInside:
@@ -213,10 +218,8 @@ class _PinnedInside:
 
     def describe(self, found) -> str:
         n, depth, k, v = found
-        ob = self.contact.obstacles[k]
         return (f"{n} pinned vertex(es) inside an obstacle, the deepest {1e3 * depth:.3g} mm "
-                f"(vertex {v}, obstacle {k}: {type(ob).__name__} "
-                f"{getattr(ob, 'name', None) or k}): a pin follows its target and contact does "
+                f"(vertex {v}, obstacle {k}: {_obstacle_words(self.contact, k)}): a pin follows its target and contact does "
                 "not move it, so the cloth beside it is pulled in (its frames are not run again "
                 "for that); keep the pins' targets outside the obstacles")
 

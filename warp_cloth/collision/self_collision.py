@@ -1259,38 +1259,37 @@ def rest_close_ee_kernel(bvh: wp.uint64, rest: wp.array(dtype=wp.vec4),
 
 @wp.kernel
 def rest_touch_kernel(rest: wp.array(dtype=wp.vec4), tris: wp.array2d(dtype=wp.int32),
-                      edges: wp.array2d(dtype=wp.int32), v: int,
+                      edges: wp.array2d(dtype=wp.int32), v: int, at_v: wp.array(dtype=int),
                       d_tri: wp.array(dtype=wp.float64), d_edge: wp.array(dtype=wp.float64),
                       e_at: wp.array(dtype=int)):
     """Rest distances, to name the pair `check_rest_apart` found: vertex ``v`` against each
     triangle of its piece (``d_tri``; -1: one of its own, or another piece's), and each edge
-    against the nearest edge at ``v`` that shares no vertex with it (``d_edge``, that edge in
-    ``e_at``; -1: none)."""
+    against the nearest of ``v``'s edges ``at_v`` that shares no vertex with it (``d_edge``,
+    that edge in ``e_at``; -1: none)."""
     i = wp.tid()
-    p = rest_point(rest, v)
     if i < tris.shape[0]:
         ia = tris[i, 0]
         ib = tris[i, 1]
         ic = tris[i, 2]
         d_tri[i] = wp.float64(-1.0)
         if ia != v and ib != v and ic != v and rest[v][3] == rest[ia][3]:
-            d_tri[i] = vt_distance(p, rest_point(rest, ia), rest_point(rest, ib),
-                                   rest_point(rest, ic))
+            d_tri[i] = vt_distance(rest_point(rest, v), rest_point(rest, ia),
+                                   rest_point(rest, ib), rest_point(rest, ic))
     if i < edges.shape[0]:
         d_edge[i] = wp.float64(-1.0)
         e_at[i] = -1
         ic = edges[i, 0]
         id = edges[i, 1]
-        for e in range(edges.shape[0]):
+        for k in range(at_v.shape[0]):
+            e = at_v[k]
             ia = edges[e, 0]
             ib = edges[e, 1]
-            if (ia == v or ib == v) and ic != ia and ic != ib and id != ia and id != ib:
-                if rest[ia][3] == rest[ic][3]:
-                    d = ee_distance(rest_point(rest, ia), rest_point(rest, ib),
-                                    rest_point(rest, ic), rest_point(rest, id))
-                    if e_at[i] < 0 or d < d_edge[i]:
-                        d_edge[i] = d
-                        e_at[i] = e
+            if ic != ia and ic != ib and id != ia and id != ib and rest[ia][3] == rest[ic][3]:
+                d = ee_distance(rest_point(rest, ia), rest_point(rest, ib),
+                                rest_point(rest, ic), rest_point(rest, id))
+                if e_at[i] < 0 or d < d_edge[i]:
+                    d_edge[i] = d
+                    e_at[i] = e
 
 
 def check_rest_apart(mesh, rest, share, thickness: float, device=None) -> None:
@@ -1303,47 +1302,47 @@ def check_rest_apart(mesh, rest, share, thickness: float, device=None) -> None:
     inverted triangle (a vertex inside a triangle it is not a corner of) returned the whole
     cloth to its start, velocities zeroed, in 301 of its first frame's 302 steps, and froze as
     diverged at frame 5 under explicit Euler."""
-    share = np.asarray(share)
-    bad = np.flatnonzero(share < float(REST_SHARE) * COINCIDENT)
+    bad = np.flatnonzero(np.asarray(share) < float(REST_SHARE) * COINCIDENT)
     if not len(bad):
         return
-    h = float(thickness)
     tris = np.asarray(mesh.triangles, dtype=np.int32)
     edges = np.asarray(mesh.edges, dtype=np.int32).reshape(-1, 2)
-    n_e = max(len(edges), 1)
     d_tri = wp.zeros(max(len(tris), 1), dtype=wp.float64, device=device)
-    d_edge = wp.zeros(n_e, dtype=wp.float64, device=device)
-    e_at = wp.zeros(n_e, dtype=int, device=device)
+    d_edge = wp.zeros(max(len(edges), 1), dtype=wp.float64, device=device)
+    e_at = wp.zeros(max(len(edges), 1), dtype=int, device=device)
     args = [wp.array(rest, dtype=wp.vec4, device=device),
             wp.array(tris, dtype=wp.int32, device=device),
             wp.array(edges, dtype=wp.int32, device=device)]
-    best = ((np.inf, 0), "")
+    found = []  # (distance as printed, 0 for a vertex and a triangle / 1 for edges, words)
     # each vertex of a pair found is marked: the closest pair of a few names one (at equal
     # distance a vertex and its triangle, the plainer)
-    for v in bad[:8]:
-        v = int(v)
-        wp.launch(rest_touch_kernel, max(len(tris), len(edges)), [*args, v, d_tri, d_edge, e_at],
+    for v in (int(v) for v in bad[:8]):
+        at_v = np.flatnonzero((edges == v).any(axis=1)).astype(np.int32)
+        wp.launch(rest_touch_kernel, max(len(tris), len(edges)),
+                  [*args, v, wp.array(at_v, dtype=int, device=device), d_tri, d_edge, e_at],
                   device=device)
-        dt, de, at = d_tri.numpy()[:len(tris)], d_edge.numpy()[:len(edges)], e_at.numpy()
-        dt = np.where(dt < 0.0, np.inf, dt)
-        de = np.where(at[:len(edges)] < 0, np.inf, de)
-        if len(dt) and (float(f"{dt.min():.3g}"), 0) < best[0]:
+        dt, de = d_tri.numpy()[:len(tris)], d_edge.numpy()[:len(edges)]
+        at = e_at.numpy()[:len(edges)]
+        dt, de = np.where(dt < 0.0, np.inf, dt), np.where(at < 0, np.inf, de)
+        if len(dt) and np.isfinite(dt.min()):
             t = int(np.argmin(dt))
-            best = ((float(f"{dt[t]:.3g}"), 0), f"vertex {v} lies {dt[t]:.3g} m from triangle {t} (vertices "
-                                  f"{', '.join(str(int(c)) for c in tris[t])}), which it is not "
-                                  "a corner of,")
-        if len(de) and (float(f"{de.min():.3g}"), 1) < best[0]:
+            found.append((float(f"{dt[t]:.3g}"), 0,
+                          f"vertex {v} lies {dt[t]:.3g} m from triangle {t} (vertices "
+                          f"{', '.join(str(int(c)) for c in tris[t])}), which it is not a "
+                          "corner of,"))
+        if len(de) and np.isfinite(de.min()):
             f = int(np.argmin(de))
-            a, b = (int(c) for c in edges[at[f]])
-            c, d = (int(c) for c in edges[f])
-            best = ((float(f"{de[f]:.3g}"), 1), f"edges {a}-{b} and {c}-{d}, which share no vertex, lie "
-                                  f"{de[f]:.3g} m apart")
+            (a, b), (c, d) = edges[at[f]], edges[f]
+            found.append((float(f"{de[f]:.3g}"), 1,
+                          f"edges {a}-{b} and {c}-{d}, which share no vertex, lie {de[f]:.3g} "
+                          "m apart"))
+    what = min(found)[2] if found else "two parts touch"
     raise ValueError(
-        f"{mesh.name}: {best[1]} in the rest shape ({len(bad)} vertices of such pairs, closer "
-        f"than {COINCIDENT:g} of the self-collision thickness {h:g} m): the mesh overlaps itself "
-        "(an inverted triangle, a vertex on another triangle's edge). Self-collision keeps parts "
-        "of the cloth apart and cannot hold ones that touch at rest: fix the mesh (triangulate "
-        "it again), or turn self-collision off")
+        f"{mesh.name}: {what} in the rest shape ({len(bad)} vertices of such pairs, closer "
+        f"than {COINCIDENT:g} of the self-collision thickness {float(thickness):g} m): the mesh "
+        "overlaps itself (an inverted triangle, a vertex on another triangle's edge). "
+        "Self-collision keeps parts of the cloth apart and cannot hold ones that touch at rest: "
+        "fix the mesh (triangulate it again), or turn self-collision off")
 
 
 def mesh_pieces(mesh) -> np.ndarray:

@@ -229,7 +229,6 @@ class CollisionStage:
         from .features import FeatureContact
 
         self.features = FeatureContact(model, contact if edges else None)
-        self._features_on = bool(edges)
         # self-collision (off unless asked for: it costs a broad phase over the cloth every step;
         # the built-in scenes ask for it)
         self.self_collision = None
@@ -390,20 +389,8 @@ class CollisionStage:
         the actual paths; then vertex contact again for the vertices those responses moved
         (one may push a vertex into another surface; the others are not approaching and are
         left as they are)."""
-        again = False
-        if self.pair_record is not None:
-            self.pair_record.count.zero_()
-            # with friction, within the vertex contacts' slack: a point the solve (or PBD's
-            # iterations) left resting on a feature, at the thickness, is in contact for it
-            margin = self.contact.slack if self.features.has_friction else 0.0
-            self.features.detect(x_start, state.x, margin, self.pair_record)
-            self.features.friction(state, dt, self.pair_record, self.contact.slack,
-                                   position_friction)
-            self.features.respond(state, dt, self.pair_record)
-            self.features.respond_spheres_again(state, x_start, dt, self.pair_record)
-            again = True
-        if again and self.contact is not None:
-            self.contact.apply(state, x_start, dt, again=True)
+        self._feature_pass(state, x_start, dt, friction=True,
+                           position_friction=position_friction)
         if self.self_collision is not None:
             # after obstacle contact, whose projection can push one layer of a fold through
             # another (measured: 88 crossing pairs on the fold); every step, or once per span
@@ -446,10 +433,23 @@ class CollisionStage:
         the cloth's own, and the edge cut 3.4-8 mm into the box for four frames, with every
         vertex outside and no step counted as unresolved. Positions and velocities, like
         `resolve`; no friction (the response's acted)."""
+        self._feature_pass(state, x_start, dt)
+
+    def _feature_pass(self, state, x_start, dt: float, friction: bool = False,
+                      position_friction: bool = False) -> None:
+        """The sharp features on the paths ``x_start -> state.x``: detect, (``friction``:
+        Coulomb friction first), respond, the spheres again, then vertex contact again for the
+        vertices they moved (`_pairs`, `pairs_again`). Nothing without features."""
         if self.pair_record is None:
             return
         self.pair_record.count.zero_()
-        self.features.detect(x_start, state.x, 0.0, self.pair_record)
+        # with friction, within the vertex contacts' slack: a point the solve (or PBD's
+        # iterations) left resting on a feature, at the thickness, is in contact for it
+        margin = self.contact.slack if friction and self.features.has_friction else 0.0
+        self.features.detect(x_start, state.x, margin, self.pair_record)
+        if friction:
+            self.features.friction(state, dt, self.pair_record, self.contact.slack,
+                                   position_friction)
         self.features.respond(state, dt, self.pair_record)
         self.features.respond_spheres_again(state, x_start, dt, self.pair_record)
         if self.contact is not None:
@@ -629,7 +629,7 @@ class CollisionStage:
         pinned edge, stretched to 245 %, had the mesh's ridges (not sharp for its rest edges)
         through its triangles in 13-14 of 40 frames under every solver."""
         f = self.features
-        if not self._features_on or f.rest_max <= 0.0 or not math.isfinite(strain):
+        if f.rest_max <= 0.0 or not math.isfinite(strain):  # (0: no features, or turned off)
             return []
         s = 1.0 + max(float(strain), 0.0)
         if s <= FEATURE_RECHOOSE * f.stretch:
