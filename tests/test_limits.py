@@ -305,7 +305,8 @@ def test_a_limit_that_the_pins_make_unreachable_stalls_and_says_so():
     """Pins held 1.3 times their rest distance apart: no sweep can bring the strip's edges
     under 1.01, and the worst excess stays where it is. The pass stops after `STALL_SWEEPS`
     sweeps without progress (not the 2,000 of ``iterations``: a sheet whose pinned corner a
-    rising floor passed ran them in every step, 95 s a frame), counted as short and as stalled,
+    rising floor passed ran them in every step, 95 s a frame; two windows of `STALL_SWEEPS`),
+    counted as short and as stalled,
     and `frame_end` says why; a pass that converges slowly (the sheet pulled to 1.2 times) is
     not cut."""
     from warp_cloth import limits
@@ -319,7 +320,9 @@ def test_a_limit_that_the_pins_make_unreachable_stalls_and_says_so():
     lim.apply(st, None, 0.01)
     s = lim.stats
     assert s["short_steps"] == 1 and s["stalled_steps"] == 1, s
-    assert limits.STALL_SWEEPS <= s["sweeps_max"] <= limits.STALL_SWEEPS + 2 * lim.check_every, s
+    # two windows: the first is never a stall
+    assert 2 * limits.STALL_SWEEPS <= s["sweeps_max"] <= 2 * limits.STALL_SWEEPS \
+        + 2 * lim.check_every, s
     msgs = lim.frame_end()
     assert len(msgs) == 1 and "stalled in 1 step" in msgs[0], msgs
     # reachable: every edge ends inside the tolerance, nothing stalls
@@ -331,6 +334,29 @@ def test_a_limit_that_the_pins_make_unreachable_stalls_and_says_so():
     lim2.apply(st2, None, 0.01)
     assert lim2.stats["stalled_steps"] == 0 and lim2.stats["short_steps"] == 0, lim2.stats
     assert (edge_strains(model2, st2.x.numpy()) + 1.0).max() <= 1.01 + 1e-3
+
+
+def test_a_pass_that_first_rises_then_converges_slowly_is_not_cut():
+    """PBD's stretch guard (a `StrainLimit` at 1.08) on the stability map's 8 x 8 hanging sheet
+    at k = 10 N/m with a 10,000:1 checkerboard of masses, 1 s at 60 fps, 2 steps a frame: its
+    sweeps first raise the worst excess (0.029 -> 0.037 in a step) and then lower it by
+    0.1-4 % every `STALL_SWEEPS` sweeps. Such passes run on to the cap (2,000 sweeps: most steps
+    end short of the tolerance at this mass ratio, reported); 4 of 120 steps stall (no 0.1 %
+    in a window) and the strain stays at 15 %. The rule before (the least excess of 90 sweeps
+    against the least before, the check before any sweep included; 5 %) stopped 96 of 120
+    steps after 90 sweeps: 122 % strain, and the stability map's cells there gained energy."""
+    from warp_cloth.bench.stability import checker_masses
+    from warp_cloth.scenes import build_scene
+
+    scene = build_scene("hanging", solver="pbd", res=8, stiffness=10.0, density=0.15,
+                        masses=checker_masses(8, 0.15, 10000.0), fps=60.0, frames=61,
+                        substeps=2, self_collision=False)
+    (guard,) = [c for c in scene.solver.corrections if isinstance(c, StrainLimit)]
+    stats = scene.run(None, quiet=True, energy=False)
+    s = guard.stats
+    assert s["steps"] == 120 and s["stalled_steps"] <= 6, s
+    assert s["sweeps_total"] > 50_000, s  # the passes ran on
+    assert stats.max_strain < 0.2, stats.max_strain
 
 
 def test_a_stalled_pass_ends_the_rounds_after_contact():
