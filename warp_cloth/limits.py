@@ -238,10 +238,11 @@ def area_check_kernel(
 
 #: a pass whose worst excess at the end of a window of ``STALL_SWEEPS`` sweeps is not below
 #: ``1 - STALL_GAIN`` of its excess at the end of the window before stops there (a stalled
-#: step: counted, reported); the first window is never a stall. Bounds that pins or contact make unreachable keep the
-#: excess exactly where it is: a 10 x 10 sheet whose pinned corner a rising floor passed,
-#: under PBD (whose default 1.08 limit is a StrainLimit), ran 2,000 sweeps in every step at
-#: 6.2e-2 and 7.2e-2 (95 s a frame, a run that looked hung); it now stops after two windows.
+#: step: counted, reported); the first window is never a stall. Bounds that pins or contact
+#: make unreachable keep the excess exactly where it is: a 10 x 10 sheet whose pinned corner
+#: a rising floor passed, under PBD (whose default 1.08 limit is a StrainLimit), ran 2,000
+#: sweeps in every step at 6.2e-2 and 7.2e-2 (95 s a frame, a run that looked hung); it now
+#: stops after two windows.
 #: Passes that converge can first raise the worst excess and then lower it slowly: PBD's
 #: stretch guard on the stability map's 8 x 8 sheet at k = 10 N/m with 10,000:1 masses rose
 #: from 0.029 to 0.035 in its first sweeps, then fell by 3-4 % every 45 sweeps (the rule before
@@ -542,7 +543,8 @@ class _JacobiLimit:
         self._counts = wp.zeros(C_STALLED + 1, dtype=wp.int32, device=self.device)
         self._bad = self._counts[C_BAD:C_BAD + 1]
         self._cond = self._counts[C_COND:C_COND + 1]
-        self._excess = wp.zeros(5, dtype=float, device=self.device)
+        # [this check, largest short, last short, excess at the last window's end]
+        self._excess = wp.zeros(4, dtype=float, device=self.device)
         self._short_seen = 0
         self._stalled_seen = 0
         self._contact = None
